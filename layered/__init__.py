@@ -1,0 +1,7 @@
+"""layered: reinforcement-learning control with stacks of controllers acting at several timescales."""
+
+from layered.agents import LayeredEnv, make_aec_env
+from layered.recipe import Recipe, RecipeError, load_recipe
+
+__all__ = ["LayeredEnv", "Recipe", "RecipeError", "load_recipe", "make_aec_env"]
+__version__ = "0.1.0"

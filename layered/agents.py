@@ -1,0 +1,153 @@
+"""The agent view: a PettingZoo AEC env in which each layer of a stack is an agent.
+
+`agent_iter()` yields a layer only when it is due; `last()` gives it its own observation, the
+shaped reward accumulated since its last decision and, in `info["elapsed"]`, the base steps
+that decision spanned. This env is the reference semantics the trainer drives directly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.spaces import Box
+from pettingzoo import AECEnv
+
+from layered.envs import make_env
+from layered.recipe import Recipe
+from layered.stack import Stack
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """One base step as executed: the action, which layers decided, and which changed the action."""
+
+    action: np.ndarray
+    reward: float
+    decided: tuple[str, ...]  # layers whose network was evaluated at this step
+    acted: tuple[str, ...]  # layers whose contribution to the action was non-zero
+
+
+class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
+    """A Gymnasium env driven by a layer stack, one agent per present layer."""
+
+    metadata = {"name": "layered_v0", "is_parallelizable": False, "render_modes": ["rgb_array"]}
+
+    def __init__(self, base: gym.Env, stack: Stack, record: bool = False) -> None:
+        """With `record`, every base step of the current episode is kept in `trace`."""
+        super().__init__()
+        self.base = base
+        self.stack = stack
+        self.render_mode = base.render_mode
+        self.possible_agents = [stack.layers[i].name for i in stack.active]
+        self._index = {stack.layers[i].name: i for i in stack.active}
+        self._observation_spaces = {n: stack.observation_spaces[i] for n, i in self._index.items()}
+        self._action_spaces = {n: stack.layers[i].action_space for n, i in self._index.items()}
+        self.record = record
+        self.trace: list[StepRecord] = []
+        self._obs: np.ndarray = np.zeros(base.observation_space.shape, np.float32)
+        self._decided: list[str] = []
+        self.episode_return = 0.0
+        self.episode_steps = 0
+
+    def observation_space(self, agent: str) -> Box:
+        return self._observation_spaces[agent]
+
+    def action_space(self, agent: str) -> Box:
+        return self._action_spaces[agent]
+
+    def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> None:
+        self._obs, _ = self.base.reset(seed=seed, options=options)
+        if seed is not None:
+            self.base.action_space.seed(seed)
+        self.stack.reset()
+        self.agents = list(self.possible_agents)
+        self.rewards = dict.fromkeys(self.agents, 0.0)
+        self._cumulative_rewards = dict.fromkeys(self.agents, 0.0)
+        self.terminations = dict.fromkeys(self.agents, False)
+        self.truncations = dict.fromkeys(self.agents, False)
+        self.infos = {a: {"elapsed": 0} for a in self.agents}
+        self._decided = []
+        self.trace = []
+        self.episode_return = 0.0
+        self.episode_steps = 0
+        first = self.stack.next_due(0)
+        assert first is not None, "every present layer decides at step 0"
+        self.agent_selection = self.stack.layers[first].name
+
+    def observe(self, agent: str) -> np.ndarray:
+        return self.stack.observation(self._index[agent], self._obs)
+
+    def step(self, action: np.ndarray | None) -> None:
+        agent = self.agent_selection
+        if self.terminations[agent] or self.truncations[agent]:
+            self._was_dead_step(action)
+            return
+        if action is None:
+            raise ValueError(f"layer {agent!r} is due and must be given an action, not None")
+        i = self._index[agent]
+        self._cumulative_rewards[agent] = 0.0
+        self.infos[agent] = {"elapsed": 0}
+        self.rewards = dict.fromkeys(self.agents, 0.0)
+        self.stack.hold(i, action)
+        self._decided.append(agent)
+        due = self.stack.next_due(i + 1)
+        ended = False
+        while due is None and not ended:
+            ended = self._base_step()
+            due = None if ended else self.stack.next_due(0)
+        if ended:
+            self.agent_selection = self.agents[0]
+        else:
+            assert due is not None
+            self.agent_selection = self.stack.layers[due].name
+        self._accumulate_rewards()
+
+    def _base_step(self) -> bool:
+        """Execute the composed action for one base step; True when the episode ended."""
+        composition = self.stack.compose()
+        self._obs, reward, terminated, truncated, _ = self.base.step(composition.action)
+        for i, r in self.stack.layer_rewards(float(reward), composition).items():
+            name = self.stack.layers[i].name
+            self.rewards[name] += r
+            self.infos[name]["elapsed"] += 1
+        if self.record:
+            acted = tuple(self.stack.layers[i].name for i, c in composition.contributions.items() if np.any(c != 0))
+            self.trace.append(StepRecord(composition.action, float(reward), tuple(self._decided), acted))
+        self.episode_return += float(reward)
+        self.episode_steps += 1
+        self._decided = []
+        self.stack.tick()
+        if terminated or truncated:
+            for name in self.agents:
+                self.terminations[name] = bool(terminated)
+                self.truncations[name] = bool(truncated) and not terminated
+            return True
+        return False
+
+    def render(self) -> Any:
+        return self.base.render()
+
+    def close(self) -> None:
+        self.base.close()
+
+
+def make_aec_env(
+    recipe: Recipe,
+    seed: int | None = None,
+    active: list[str] | None = None,
+    evaluation: bool = False,
+    threshold: float | None = None,
+    record: bool = False,
+    render_mode: str | None = None,
+) -> LayeredEnv:
+    """The AEC env of a recipe's stack (all layers present unless `active` names some), reset with `seed`."""
+    base = make_env(recipe.env.id, render_mode=render_mode)
+    obs_space, action_space = base.observation_space, base.action_space
+    assert isinstance(obs_space, Box) and isinstance(action_space, Box)
+    stack = Stack(recipe, obs_space, action_space, active=active, evaluation=evaluation, threshold=threshold)
+    env = LayeredEnv(base, stack, record=record)
+    env.reset(seed=seed)
+    return env

@@ -1,0 +1,73 @@
+"""The learner contract: acting is separate from learning, and state is plain tensors."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from gymnasium.spaces import Box
+from pydantic import BaseModel, ConfigDict, Field
+
+from layered.buffer import Transition
+from layered.registry import Registry
+
+
+class LearnerConfig(BaseModel):
+    """Base of every learner's settings: frozen, and unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+    kind: str
+    """Registered name of the learner."""
+    gamma: float = Field(0.99, ge=0, le=1)
+    """Discount per decision of the layer (or per base step, see train.discount)."""
+
+
+@dataclass(frozen=True)
+class UpdateStats:
+    """What one gradient update measured; fields are None when that part did not run."""
+
+    critic_loss: float
+    actor_loss: float | None
+
+
+class Learner(ABC):
+    """A layer's policy and the algorithm that trains it from the layer's own transitions."""
+
+    Config: ClassVar[type[LearnerConfig]]
+
+    def __init__(self, obs_space: Box, action_space: Box, config: LearnerConfig, seed: int) -> None:
+        self.obs_space = obs_space
+        self.action_space = action_space
+        self.config = config
+        self.rng = np.random.default_rng(seed)
+
+    def random_action(self) -> np.ndarray:
+        """A uniform sample from the action space, drawn from this learner's own generator."""
+        low, high = self.action_space.low, self.action_space.high
+        return self.rng.uniform(low, high).astype(np.float32)
+
+    @abstractmethod
+    def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
+        """The action for `obs`; with `explore`, perturbed for exploration. Never learns."""
+
+    @abstractmethod
+    def observe(self, transition: Transition) -> None:
+        """Store a transition for later updates."""
+
+    @abstractmethod
+    def update(self) -> UpdateStats | None:
+        """One learning step from stored transitions; None while there is too little data."""
+
+    @abstractmethod
+    def state_dict(self) -> dict[str, Any]:
+        """Networks and optimiser states as tensors, for a checkpoint."""
+
+    @abstractmethod
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what `state_dict` returned."""
+
+
+LEARNERS: Registry[type[Learner]] = Registry("learner")

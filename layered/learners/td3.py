@@ -1,0 +1,169 @@
+"""TD3 (Fujimoto et al., 2018) with the TLA paper's settings as defaults."""
+
+from __future__ import annotations
+
+import copy
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from gymnasium.spaces import Box
+from pydantic import Field
+from torch import nn
+
+from layered.buffer import ReplayBuffer, Transition
+from layered.learners.base import LEARNERS, Learner, LearnerConfig, UpdateStats
+
+
+class TD3Config(LearnerConfig):
+    """TD3 settings; defaults are those of the TLA paper and of the original TD3."""
+
+    kind: Literal["td3"] = "td3"
+    hidden: tuple[int, ...] = (400, 300)
+    """Hidden layer widths of the actor and of each critic."""
+    lr: float = Field(3e-4, gt=0)
+    """Adam learning rate of actor and critics."""
+    batch_size: int = Field(256, gt=0)
+    """Transitions per gradient update."""
+    tau: float = Field(0.005, gt=0, le=1)
+    """Polyak rate of the target networks."""
+    policy_noise: float = Field(0.2, ge=0)
+    """Std of target-policy smoothing noise, as a fraction of the action half-range."""
+    noise_clip: float = Field(0.5, ge=0)
+    """Clip of the smoothing noise, as a fraction of the action half-range."""
+    exploration_noise: float = Field(0.1, ge=0)
+    """Std of Gaussian exploration noise, as a fraction of the action half-range."""
+    policy_delay: int = Field(2, gt=0)
+    """Critic updates per actor and target update."""
+    buffer_size: int = Field(1_000_000, gt=0)
+    """Replay capacity in transitions."""
+
+
+def mlp(sizes: tuple[int, ...]) -> nn.Sequential:
+    """ReLU multilayer perceptron with a linear last layer."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class Actor(nn.Module):
+    """Deterministic policy squashed into the action box by tanh."""
+
+    def __init__(self, obs_dim: int, low: np.ndarray, high: np.ndarray, hidden: tuple[int, ...]) -> None:
+        super().__init__()
+        self.net = mlp((obs_dim, *hidden, len(low)))
+        self.register_buffer("centre", torch.as_tensor((high + low) / 2, dtype=torch.float32))
+        self.register_buffer("scale", torch.as_tensor((high - low) / 2, dtype=torch.float32))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.centre + self.scale * torch.tanh(self.net(obs))
+
+
+class TwinCritic(nn.Module):
+    """Two independent Q-networks on (obs, action)."""
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: tuple[int, ...]) -> None:
+        super().__init__()
+        self.q1 = mlp((obs_dim + action_dim, *hidden, 1))
+        self.q2 = mlp((obs_dim + action_dim, *hidden, 1))
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = torch.cat([obs, action], dim=-1)
+        return self.q1(x), self.q2(x)
+
+
+def adam(params: Any, lr: float) -> torch.optim.Adam:
+    """Adam, fused where this torch build supports it on CPU."""
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except (RuntimeError, TypeError):
+        return torch.optim.Adam(params, lr=lr)
+
+
+@LEARNERS.register("td3")
+class TD3(Learner):
+    """Twin critics, delayed actor updates and target policy smoothing."""
+
+    Config = TD3Config
+    config: TD3Config
+
+    def __init__(self, obs_space: Box, action_space: Box, config: TD3Config, seed: int) -> None:
+        super().__init__(obs_space, action_space, config, seed)
+        torch.manual_seed(seed)  # network initialisation
+        self.torch_rng = torch.Generator().manual_seed(seed)  # target smoothing noise
+        obs_dim, act_dim = obs_space.shape[0], action_space.shape[0]
+        low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
+        self.actor = Actor(obs_dim, low, high, config.hidden)
+        self.critic = TwinCritic(obs_dim, act_dim, config.hidden)
+        self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.actor_opt = adam(self.actor.parameters(), config.lr)
+        self.critic_opt = adam(self.critic.parameters(), config.lr)
+        self.buffer = ReplayBuffer(obs_dim, act_dim, config.buffer_size)
+        self.updates = 0
+        self._low = torch.as_tensor(low, dtype=torch.float32)
+        self._high = torch.as_tensor(high, dtype=torch.float32)
+        self._half = (self._high - self._low) / 2
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
+        action = self.actor(torch.as_tensor(obs, dtype=torch.float32)).numpy()
+        if explore:
+            noise = self.rng.normal(0.0, self.config.exploration_noise, size=action.shape) * self._half.numpy()
+            action = np.clip(action + noise, self.action_space.low, self.action_space.high)
+        return action.astype(np.float32)
+
+    def observe(self, transition: Transition) -> None:
+        self.buffer.add(transition)
+
+    def update(self) -> UpdateStats | None:
+        cfg = self.config
+        if len(self.buffer) == 0:
+            return None
+        b = self.buffer.sample(cfg.batch_size, self.rng)
+        with torch.no_grad():
+            noise = (torch.randn(b.action.shape, generator=self.torch_rng) * cfg.policy_noise).clamp(-cfg.noise_clip, cfg.noise_clip)
+            next_action = (self.actor_target(b.next_obs) + noise * self._half).clamp(self._low, self._high)
+            q1_next, q2_next = self.critic_target(b.next_obs, next_action)
+            target = b.reward + b.not_done * b.discount * torch.min(q1_next, q2_next)
+        q1, q2 = self.critic(b.obs, b.action)
+        critic_loss = nn.functional.mse_loss(q1, target) + nn.functional.mse_loss(q2, target)
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_opt.step()
+        self.updates += 1
+        actor_loss = None
+        if self.updates % cfg.policy_delay == 0:
+            loss = -self.critic.q1(torch.cat([b.obs, self.actor(b.obs)], dim=-1)).mean()
+            self.actor_opt.zero_grad(set_to_none=True)
+            loss.backward()
+            self.actor_opt.step()
+            actor_loss = loss.item()
+            for net, target_net in ((self.actor, self.actor_target), (self.critic, self.critic_target)):
+                torch._foreach_lerp_(list(target_net.parameters()), list(net.parameters()), cfg.tau)
+        return UpdateStats(critic_loss=critic_loss.item(), actor_loss=actor_loss)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "actor_target": self.actor_target.state_dict(),
+            "critic_target": self.critic_target.state_dict(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "updates": self.updates,
+            "torch_rng": self.torch_rng.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.actor_target.load_state_dict(state["actor_target"])
+        self.critic_target.load_state_dict(state["critic_target"])
+        self.actor_opt.load_state_dict(state["actor_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        self.updates = int(state["updates"])
+        self.torch_rng.set_state(state["torch_rng"])

@@ -1,0 +1,93 @@
+"""The paper's measures of a controller, from the base steps of evaluation episodes."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def action_repetition(actions: Sequence[np.ndarray]) -> float:
+    """Share of steps whose executed action equals the previous step's exactly (the first never does)."""
+    if not actions:
+        return 0.0
+    repeats = sum(bool(np.array_equal(a, b)) for a, b in zip(actions[1:], actions[:-1], strict=True))
+    return repeats / len(actions)
+
+
+def normalised_auc(steps: Sequence[float], returns: Sequence[float], return_range: tuple[float, float]) -> float:
+    """Trapezoidal area under the evaluation curve, returns mapped to [0, 1] by (worst, best),
+    divided by the training span; a single evaluation gives its normalised return."""
+    worst, best = return_range
+    y = (np.asarray(returns, np.float64) - worst) / (best - worst)
+    x = np.asarray(steps, np.float64)
+    if len(x) < 2 or x[-1] == x[0]:
+        return float(y[-1])
+    return float(np.trapezoid(y, x) / (x[-1] - x[0]))
+
+
+@dataclass(frozen=True)
+class EpisodeMeasures:
+    """One episode's return, length, action repetition, decisions and per-layer activity."""
+
+    ret: float
+    steps: int
+    repetition: float
+    decisions: int  # steps at which any layer's network was evaluated
+    decided: dict[str, int] = field(default_factory=dict)  # per layer: steps it was evaluated
+    acted: dict[str, int] = field(default_factory=dict)  # per layer: steps its contribution was non-zero
+
+
+def measure_episode(
+    actions: Sequence[np.ndarray], rewards: Sequence[float], decided: Sequence[Sequence[str]],
+    acted: Sequence[Sequence[str]], layers: Sequence[str],
+) -> EpisodeMeasures:
+    """Measures of one episode from its per-step executed actions, rewards and layer activity."""
+    return EpisodeMeasures(
+        ret=float(np.sum(rewards)),
+        steps=len(actions),
+        repetition=action_repetition(actions),
+        decisions=sum(1 for d in decided if d),
+        decided={n: sum(n in d for d in decided) for n in layers},
+        acted={n: sum(n in a for a in acted) for n in layers},
+    )
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Means over the episodes of one evaluation (activity as shares of steps)."""
+
+    return_mean: float
+    return_std: float
+    repetition: float
+    decisions: float
+    steps: float
+    decided: dict[str, float]
+    acted: dict[str, float]
+
+    def row(self) -> dict[str, float]:
+        """Flat columns for a CSV row."""
+        out = {
+            "return_mean": self.return_mean, "return_std": self.return_std, "repetition": self.repetition,
+            "decisions": self.decisions, "episode_steps": self.steps,
+        }
+        out |= {f"decided_{n}": v for n, v in self.decided.items()}
+        out |= {f"acted_{n}": v for n, v in self.acted.items()}
+        return out
+
+
+def summarise(episodes: Sequence[EpisodeMeasures]) -> Evaluation:
+    """Average the measures of several episodes; per-layer activity is pooled over all their steps."""
+    total = sum(e.steps for e in episodes)
+    names = list(episodes[0].decided)
+    returns = np.array([e.ret for e in episodes])
+    return Evaluation(
+        return_mean=float(returns.mean()),
+        return_std=float(returns.std()),
+        repetition=float(np.mean([e.repetition for e in episodes])),
+        decisions=float(np.mean([e.decisions for e in episodes])),
+        steps=float(np.mean([e.steps for e in episodes])),
+        decided={n: sum(e.decided[n] for e in episodes) / total for n in names},
+        acted={n: sum(e.acted[n] for e in episodes) / total for n in names},
+    )

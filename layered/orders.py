@@ -1,0 +1,48 @@
+"""Training orders: which layers learn in each phase and which are present (the rest frozen)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from layered.registry import Registry
+
+
+@dataclass(frozen=True)
+class Phase:
+    """One training phase: `learn` layers learn, the other `active` layers act frozen."""
+
+    learn: tuple[str, ...]
+    active: tuple[str, ...]
+    steps: int | None = None  # base steps; None means the recipe's steps_per_phase
+
+
+Order = Callable[[Sequence[str], Sequence[Any]], list[Phase]]
+ORDERS: Registry[Order] = Registry("training order")
+
+
+@ORDERS.register("slow-to-fast")
+def slow_to_fast(names: Sequence[str], phases: Sequence[Any] = ()) -> list[Phase]:
+    """Closed loop (TLA-C): train the slowest alone, freeze it, train the next on top, and so on."""
+    return [Phase(learn=(name,), active=tuple(names[: k + 1])) for k, name in enumerate(names)]
+
+
+@ORDERS.register("fast-to-slow")
+def fast_to_slow(names: Sequence[str], phases: Sequence[Any] = ()) -> list[Phase]:
+    """Open loop (TLA-O): train the fastest alone, then each slower layer on top of the trained ones."""
+    n = len(names)
+    return [Phase(learn=(names[k],), active=tuple(names[k:])) for k in range(n - 1, -1, -1)]
+
+
+@ORDERS.register("explicit")
+def explicit(names: Sequence[str], phases: Sequence[Any] = ()) -> list[Phase]:
+    """The recipe's own phases; a phase's active layers default to its learners plus all trained before."""
+    trained: set[str] = set()
+    out = []
+    for phase in phases:
+        wanted = set(phase.active) if phase.active is not None else set(phase.learn) | trained
+        wanted |= set(phase.learn)
+        out.append(Phase(learn=tuple(phase.learn), active=tuple(n for n in names if n in wanted), steps=phase.steps))
+        trained |= set(phase.learn)
+    return out

@@ -1,0 +1,318 @@
+"""Recipes: TOML files over typed schemas, validated on load with errors that name file and key."""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from layered.combiners import COMBINERS
+from layered.envs import env_info
+from layered.learners import LEARNERS
+from layered.orders import ORDERS
+
+
+class RecipeError(ValueError):
+    """A recipe that cannot be used; each line names the source, the key and what was expected."""
+
+    def __init__(self, source: str, problems: list[tuple[str, str]]) -> None:
+        self.lines = [f"{source}: {key or '(top level)'}: {message}" for key, message in problems]
+        super().__init__("\n".join(self.lines))
+
+
+class Section(BaseModel):
+    """Base of every recipe table: frozen, unknown keys are errors, attribute docstrings documented."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+
+class EnvConfig(Section):
+    """The environment every layer controls."""
+
+    id: str
+    """Environment id, `family:name`; a bare name is a Gymnasium id, e.g. `Pendulum-v1`."""
+    return_range: tuple[float, float] | None = None
+    """(worst, best) return that normalises the AUC; defaults to the environment registry's."""
+
+
+class CombineConfig(Section):
+    """The default combiner of every layer, and its evaluation threshold."""
+
+    kind: str = "residual-clip"
+    """Combiner name: `residual-clip` or `gate` (or any registered one)."""
+    eval_threshold: float = Field(0.3, ge=0)
+    """At evaluation, lower residual contributions whose effect is below this fraction of the
+    maximum action are zeroed; 0 disables thresholding."""
+    per_dimension: bool = False
+    """Threshold each action dimension on its own instead of all dimensions together."""
+
+
+class LayerConfig(Section):
+    """One controller of the stack; layers are listed slowest first."""
+
+    name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_-]*$")
+    """Unique name, used in `sees`, in phases and as the agent's name."""
+    period: int = Field(gt=0)
+    """Base environment steps between decisions; must divide the period of the layer above."""
+    sees: list[str] = ["obs"]
+    """What the layer observes: `obs` and the names of slower layers whose held actions it sees."""
+    combine: str | None = None
+    """How this layer merges with the layers below; defaults to `combine.kind`."""
+    eval_threshold: float | None = Field(None, ge=0)
+    """Overrides `combine.eval_threshold` for the layers below this one."""
+    action_scale: float = Field(1.0, gt=0)
+    """The layer's action range as a multiple of the environment's (2 lets a residual cancel)."""
+    action_penalty: float = Field(0.0, ge=0)
+    """Reward penalty per step: this times the mean of |action| / the layer's action bound."""
+    defer_reward_scale: tuple[float, float] = (2.0, 0.5)
+    """Gate layers: factors on rewards r <= 0 and r > 0 earned while the layers below act."""
+    learner: dict[str, Any] = {}
+    """Learner settings for this layer, over the recipe's `[learner]` table."""
+
+
+class PhaseConfig(Section):
+    """One training phase of an explicit order."""
+
+    learn: list[str] = Field(min_length=1)
+    """Layers that learn in this phase."""
+    active: list[str] | None = None
+    """Layers present in this phase; default: `learn` plus every layer trained before."""
+    steps: int | None = Field(None, gt=0)
+    """Base environment steps of this phase; default `train.steps_per_phase`."""
+
+
+class TrainConfig(Section):
+    """How the stack is trained."""
+
+    order: str = "slow-to-fast"
+    """Training order: `slow-to-fast`, `fast-to-slow`, or `explicit` (with `phases`)."""
+    phases: list[PhaseConfig] | None = None
+    """Explicit phases; giving them selects the `explicit` order."""
+    steps_per_phase: int = Field(30_000, gt=0)
+    """Base environment steps per phase."""
+    warmup: int = Field(1000, ge=0)
+    """Decisions of each learning layer taken uniformly at random before updates start."""
+    discount: Literal["decision", "step"] = "decision"
+    """`decision`: gamma per decision of a layer; `step`: gamma**k for a decision spanning k steps."""
+    seed: int = 0
+    """Seed of the environment, the networks and the exploration."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _phases_select_explicit(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("phases") is not None and "order" not in data:
+            return {**data, "order": "explicit"}
+        return data
+
+
+class EvalConfig(Section):
+    """How the stack is evaluated during and after training."""
+
+    every: int = Field(5000, gt=0)
+    """Base environment steps between evaluations within a phase."""
+    episodes: int = Field(10, gt=0)
+    """Deterministic episodes per evaluation."""
+    seed_offset: int = 100
+    """The evaluation environment is seeded with train.seed plus this offset."""
+
+
+class Recipe(Section):
+    """A whole experiment: environment, layer stack, combiners, learners, training and evaluation."""
+
+    env: EnvConfig
+    layers: list[LayerConfig] = Field(min_length=1)
+    combine: CombineConfig = CombineConfig()
+    learner: dict[str, Any] = {"kind": "td3"}
+    """Learner settings shared by every layer (`kind` plus that learner's keys)."""
+    train: TrainConfig = TrainConfig()
+    eval: EvalConfig = EvalConfig()
+
+    def layer_names(self) -> list[str]:
+        return [layer.name for layer in self.layers]
+
+    def combiner_kind(self, index: int) -> str:
+        """The combiner of layer `index` (merging it with the layers below); the fastest layer has
+        no layer below, so its combiner is never consulted and is always plain `residual-clip`."""
+        if index == len(self.layers) - 1:
+            return "residual-clip"
+        return self.layers[index].combine or self.combine.kind
+
+    def threshold(self, index: int) -> float:
+        """The evaluation threshold (fraction of max action) applied below layer `index`."""
+        own = self.layers[index].eval_threshold
+        return own if own is not None else self.combine.eval_threshold
+
+
+def _key(loc: Iterable[Any]) -> str:
+    """`layers[1].period` from a pydantic location tuple."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
+
+
+def _describe(error: Mapping[str, Any]) -> str:
+    """A one-line account of a pydantic error: what was expected and what was given."""
+    kind, msg = error["type"], error["msg"]
+    if kind == "extra_forbidden":
+        return "unknown key"
+    if kind == "missing":
+        return "required key is missing"
+    given = error.get("input")
+    return f"{msg[0].lower()}{msg[1:]} (got {given!r})" if not isinstance(given, dict) else msg
+
+
+def _check_stack(recipe: Recipe) -> list[tuple[str, str]]:
+    """Problems no single field shows: names, periods, references, registries, learners, env."""
+    problems: list[tuple[str, str]] = []
+    names = recipe.layer_names()
+    for i, layer in enumerate(recipe.layers):
+        where = f"layers[{i}]"
+        if names.index(layer.name) != i:
+            problems.append((f"{where}.name", f"layer name {layer.name!r} is used twice"))
+        if i > 0 and recipe.layers[i - 1].period % layer.period:
+            above = recipe.layers[i - 1]
+            problems.append(
+                (f"{where}.period", f"period {layer.period} does not divide the period {above.period} of "
+                 f"layer {above.name!r} above it (layers are listed slowest first)")
+            )
+        for seen in layer.sees:
+            if seen != "obs" and seen not in names[:i]:
+                problems.append((f"{where}.sees", f"{seen!r} is neither 'obs' nor a slower layer than {layer.name!r}"))
+        if layer.combine is not None and layer.combine not in COMBINERS:
+            problems.append((f"{where}.combine", f"unknown combiner {layer.combine!r}; known: {', '.join(COMBINERS)}"))
+        if layer.combine is not None and i == len(names) - 1 and COMBINERS.get(layer.combine).gate_dims:
+            problems.append((f"{where}.combine", "the fastest layer has no layer below to defer to"))
+        problems += [(f"{where}.learner{k}", m) for k, m in _check_learner({**recipe.learner, **layer.learner})]
+    if recipe.combine.kind not in COMBINERS:
+        problems.append(("combine.kind", f"unknown combiner {recipe.combine.kind!r}; known: {', '.join(COMBINERS)}"))
+    if recipe.train.order not in ORDERS:
+        problems.append(("train.order", f"unknown order {recipe.train.order!r}; known: {', '.join(ORDERS)}"))
+    elif recipe.train.order == "explicit" and not recipe.train.phases:
+        problems.append(("train.phases", "the explicit order needs at least one [[train.phases]]"))
+    for p, phase in enumerate(recipe.train.phases or []):
+        for field in ("learn", "active"):
+            for name in getattr(phase, field) or []:
+                if name not in names:
+                    problems.append((f"train.phases[{p}].{field}", f"no layer named {name!r}; layers: {', '.join(names)}"))
+    try:
+        env_info(recipe.env.id)
+    except KeyError as e:
+        problems.append(("env.id", str(e.args[0])))
+    return problems
+
+
+def _check_learner(table: dict[str, Any]) -> list[tuple[str, str]]:
+    """Problems of one layer's merged learner table, keyed relative to it."""
+    kind = table.get("kind", "td3")
+    if kind not in LEARNERS:
+        return [(".kind", f"unknown learner {kind!r}; known: {', '.join(LEARNERS)}")]
+    try:
+        LEARNERS.get(kind).Config.model_validate({**table, "kind": kind})
+    except ValidationError as e:
+        return [("." + _key(err["loc"]), _describe(err)) for err in e.errors()]
+    return []
+
+
+def learner_config(recipe: Recipe, index: int) -> Any:
+    """The validated learner config of layer `index`."""
+    table = {"kind": "td3", **recipe.learner, **recipe.layers[index].learner}
+    return LEARNERS.get(table["kind"]).Config.model_validate(table)
+
+
+_PATH_PART = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
+
+
+def _parse_value(text: str) -> Any:
+    """A TOML value (`3`, `1e-3`, `true`, `[1, 2]`, `"x"`); anything else is taken as a string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_override(data: dict[str, Any], override: str) -> None:
+    """Set one `key=value` override in the raw recipe table; layers may be named or indexed."""
+    path, sep, text = override.partition("=")
+    if not sep or not path.strip():
+        raise RecipeError("command line", [(override, "an override is written key=value, e.g. train.seed=3")])
+    parts = [m.group(1) or int(m.group(2)) for m in _PATH_PART.finditer(path.strip())]
+    parts = [int(p) if isinstance(p, str) and p.isdigit() else p for p in parts]
+    node: Any = data
+    for depth, part in enumerate(parts[:-1]):
+        node = _descend(node, part, parts[: depth + 1], override)
+    last = parts[-1]
+    if isinstance(node, list):
+        node[_list_index(node, last, override)] = _parse_value(text)
+    else:
+        node[last] = _parse_value(text)
+
+
+def _descend(node: Any, part: str | int, seen: list[str | int], override: str) -> Any:
+    if isinstance(node, list):
+        return node[_list_index(node, part, override)]
+    if not isinstance(node, dict):
+        raise RecipeError("command line", [(override, f"{_key(seen[:-1])} is a value, not a table")])
+    return node.setdefault(str(part), {})
+
+
+def _list_index(items: list[Any], part: str | int, override: str) -> int:
+    """Index of a list entry given by position or, for layers and phases, by name."""
+    if isinstance(part, int):
+        if not -len(items) <= part < len(items):
+            raise RecipeError("command line", [(override, f"index {part} is out of range (there are {len(items)})")])
+        return part
+    for i, item in enumerate(items):
+        if isinstance(item, dict) and item.get("name") == part:
+            return i
+    raise RecipeError("command line", [(override, f"no entry named {part!r}")])
+
+
+def load_recipe(source: str | Path | Mapping[str, Any], overrides: Iterable[str] = ()) -> Recipe:
+    """The validated recipe from a TOML file or a table, with `key=value` overrides applied.
+
+    Raises RecipeError, whose lines each name the file, the key and what was expected.
+    """
+    if isinstance(source, Mapping):
+        label, data = "<recipe>", _deep_copy(dict(source))
+    else:
+        label = str(source)
+        try:
+            data = tomllib.loads(Path(source).read_text())
+        except FileNotFoundError:
+            raise RecipeError(label, [("", "no such recipe file")]) from None
+        except tomllib.TOMLDecodeError as e:
+            raise RecipeError(label, [("", f"not valid TOML: {e}")]) from None
+    overrides = list(overrides)
+    for override in overrides:
+        apply_override(data, override)
+    if overrides:
+        label += " (with command-line overrides)"
+    try:
+        recipe = Recipe.model_validate(data)
+    except ValidationError as e:
+        raise RecipeError(label, [(_key(err["loc"]), _describe(err)) for err in e.errors()]) from None
+    problems = _check_stack(recipe)
+    if problems:
+        raise RecipeError(label, problems)
+    return recipe
+
+
+def _deep_copy(data: Any) -> Any:
+    if isinstance(data, dict):
+        return {k: _deep_copy(v) for k, v in data.items()}
+    if isinstance(data, list):
+        return [_deep_copy(v) for v in data]
+    return data
+
+
+def resolved(recipe: Recipe) -> dict[str, Any]:
+    """The recipe as plain data with every default and each layer's full learner settings."""
+    data = recipe.model_dump(mode="json", exclude_none=True)
+    for i, layer in enumerate(data["layers"]):
+        layer["learner"] = learner_config(recipe, i).model_dump(mode="json")
+    return data
