@@ -31,7 +31,8 @@ class GymnasiumFamily(EnvFamily):
         env = gym.make(name, render_mode=render_mode)
         if not isinstance(env.action_space, Box):
             env.close()
-            raise KeyError(f"environment {name!r} has a {type(env.action_space).__name__} action space; layers need a Box")
+            kind = type(env.action_space).__name__
+            raise KeyError(f"environment {name!r} has a {kind} action space; layers need a Box")
         return env
 
     def info(self, name: str) -> EnvInfo:

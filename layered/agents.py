@@ -8,7 +8,7 @@ that decision spanned. This env is the reference semantics the trainer drives di
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -33,7 +33,9 @@ class StepRecord:
 class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
     """A Gymnasium env driven by a layer stack, one agent per present layer."""
 
-    metadata = {"name": "layered_v0", "is_parallelizable": False, "render_modes": ["rgb_array"]}
+    metadata: ClassVar[dict[str, Any]] = {
+        "name": "layered_v0", "is_parallelizable": False, "render_modes": ["rgb_array"],
+    }
 
     def __init__(self, base: gym.Env, stack: Stack, record: bool = False) -> None:
         """With `record`, every base step of the current episode is kept in `trace`."""

@@ -168,41 +168,62 @@ def _describe(error: Mapping[str, Any]) -> str:
 
 def _check_stack(recipe: Recipe) -> list[tuple[str, str]]:
     """Problems no single field shows: names, periods, references, registries, learners, env."""
+    problems = _check_layers(recipe) + _check_learners(recipe) + _check_training(recipe)
+    if recipe.combine.kind not in COMBINERS:
+        problems.append(("combine.kind", f"unknown combiner {recipe.combine.kind!r}; known: {', '.join(COMBINERS)}"))
+    try:
+        env_info(recipe.env.id)
+    except KeyError as e:
+        problems.append(("env.id", str(e.args[0])))
+    return problems
+
+
+def _check_layers(recipe: Recipe) -> list[tuple[str, str]]:
+    """Unique names, dividing periods, `sees` naming slower layers, known combiners."""
     problems: list[tuple[str, str]] = []
     names = recipe.layer_names()
     for i, layer in enumerate(recipe.layers):
         where = f"layers[{i}]"
         if names.index(layer.name) != i:
             problems.append((f"{where}.name", f"layer name {layer.name!r} is used twice"))
-        if i > 0 and recipe.layers[i - 1].period % layer.period:
-            above = recipe.layers[i - 1]
-            problems.append(
-                (f"{where}.period", f"period {layer.period} does not divide the period {above.period} of "
-                 f"layer {above.name!r} above it (layers are listed slowest first)")
-            )
-        for seen in layer.sees:
-            if seen != "obs" and seen not in names[:i]:
-                problems.append((f"{where}.sees", f"{seen!r} is neither 'obs' nor a slower layer than {layer.name!r}"))
-        if layer.combine is not None and layer.combine not in COMBINERS:
+        above = recipe.layers[i - 1] if i else None
+        if above is not None and above.period % layer.period:
+            problems.append((f"{where}.period", f"period {layer.period} does not divide the period {above.period} of "
+                             f"layer {above.name!r} above it (layers are listed slowest first)"))
+        problems += [(f"{where}.sees", f"{seen!r} is neither 'obs' nor a slower layer than {layer.name!r}")
+                     for seen in layer.sees if seen != "obs" and seen not in names[:i]]
+        if layer.combine is None:
+            continue
+        if layer.combine not in COMBINERS:
             problems.append((f"{where}.combine", f"unknown combiner {layer.combine!r}; known: {', '.join(COMBINERS)}"))
-        if layer.combine is not None and i == len(names) - 1 and COMBINERS.get(layer.combine).gate_dims:
+        elif i == len(names) - 1 and COMBINERS.get(layer.combine).gate_dims:
             problems.append((f"{where}.combine", "the fastest layer has no layer below to defer to"))
-        problems += [(f"{where}.learner{k}", m) for k, m in _check_learner({**recipe.learner, **layer.learner})]
-    if recipe.combine.kind not in COMBINERS:
-        problems.append(("combine.kind", f"unknown combiner {recipe.combine.kind!r}; known: {', '.join(COMBINERS)}"))
+    return problems
+
+
+def _check_learners(recipe: Recipe) -> list[tuple[str, str]]:
+    """The shared [learner] table, then each layer's own table merged over it."""
+    shared = _check_learner(recipe.learner)
+    problems = [(f"learner{k}", m) for k, m in shared]
+    for i, layer in enumerate(recipe.layers):  # a layer's own table can only break a valid shared one
+        if layer.learner and not shared:
+            merged = _check_learner({**recipe.learner, **layer.learner})
+            problems += [(f"layers[{i}].learner{k}", m) for k, m in merged]
+    return problems
+
+
+def _check_training(recipe: Recipe) -> list[tuple[str, str]]:
+    """A known order, and explicit phases that name existing layers."""
+    problems: list[tuple[str, str]] = []
+    names = recipe.layer_names()
     if recipe.train.order not in ORDERS:
         problems.append(("train.order", f"unknown order {recipe.train.order!r}; known: {', '.join(ORDERS)}"))
     elif recipe.train.order == "explicit" and not recipe.train.phases:
         problems.append(("train.phases", "the explicit order needs at least one [[train.phases]]"))
     for p, phase in enumerate(recipe.train.phases or []):
         for field in ("learn", "active"):
-            for name in getattr(phase, field) or []:
-                if name not in names:
-                    problems.append((f"train.phases[{p}].{field}", f"no layer named {name!r}; layers: {', '.join(names)}"))
-    try:
-        env_info(recipe.env.id)
-    except KeyError as e:
-        problems.append(("env.id", str(e.args[0])))
+            problems += [(f"train.phases[{p}].{field}", f"no layer named {name!r}; layers: {', '.join(names)}")
+                         for name in getattr(phase, field) or [] if name not in names]
     return problems
 
 

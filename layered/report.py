@@ -10,7 +10,7 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
+import matplotlib.pyplot as plt
 
 
 def _activity(row: dict[str, Any], prefix: str) -> str:
@@ -26,7 +26,8 @@ def results_table(rows: Sequence[dict[str, Any]]) -> str:
         lines.append(
             f"| {r.get('phase', '')} | {'+'.join(r.get('learn', []))} | {'+'.join(r.get('active', []))} "
             f"| {r['return_mean']:.1f} ± {r['return_std']:.1f} | {auc} | {100 * r['repetition']:.1f}% "
-            f"| {r['decisions']:.1f} of {r['episode_steps']:.0f} | {_activity(r, 'decided_')} | {_activity(r, 'acted_')} |"
+            f"| {r['decisions']:.1f} of {r['episode_steps']:.0f} "
+            f"| {_activity(r, 'decided_')} | {_activity(r, 'acted_')} |"
         )
     return "\n".join(lines)
 

@@ -81,7 +81,9 @@ class CsvLog:
             writer.writerow(row)
 
 
-def train(recipe: Recipe, out_dir: str | Path, max_steps: int | None = None, progress: bool = True) -> list[PhaseResult]:
+def train(
+    recipe: Recipe, out_dir: str | Path, max_steps: int | None = None, progress: bool = True
+) -> list[PhaseResult]:
     """Train every phase of `recipe`, writing the run directory; `max_steps` caps each phase."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

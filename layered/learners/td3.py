@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import itertools
 from typing import Any, Literal
 
 import numpy as np
@@ -42,7 +43,7 @@ class TD3Config(LearnerConfig):
 def mlp(sizes: tuple[int, ...]) -> nn.Sequential:
     """ReLU multilayer perceptron with a linear last layer."""
     layers: list[nn.Module] = []
-    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+    for i, (a, b) in enumerate(itertools.pairwise(sizes)):
         layers.append(nn.Linear(a, b))
         if i < len(sizes) - 2:
             layers.append(nn.ReLU())
@@ -125,7 +126,8 @@ class TD3(Learner):
             return None
         b = self.buffer.sample(cfg.batch_size, self.rng)
         with torch.no_grad():
-            noise = (torch.randn(b.action.shape, generator=self.torch_rng) * cfg.policy_noise).clamp(-cfg.noise_clip, cfg.noise_clip)
+            noise = torch.randn(b.action.shape, generator=self.torch_rng) * cfg.policy_noise
+            noise = noise.clamp(-cfg.noise_clip, cfg.noise_clip)
             next_action = (self.actor_target(b.next_obs) + noise * self._half).clamp(self._low, self._high)
             q1_next, q2_next = self.critic_target(b.next_obs, next_action)
             target = b.reward + b.not_done * b.discount * torch.min(q1_next, q2_next)

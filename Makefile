@@ -1,0 +1,25 @@
+# Set-up and the two main jobs. Each target creates .venv on first use and installs torch 2.13.0
+# (a CPU build) before the project, so the project's torch>=2.3 requirement is already met.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+RECIPE ?= recipes/pendulum/tla-c.toml
+OUT    ?= runs/$(basename $(notdir $(RECIPE)))-$(shell date +%Y%m%d-%H%M%S)
+
+.PHONY: run test lint
+
+run: $(VENV)/.installed
+	$(BIN)/layered train $(RECIPE) --out $(OUT)
+
+test: $(VENV)/.installed
+	MUJOCO_GL=egl $(BIN)/python -m pytest -q
+
+lint: $(VENV)/.installed
+	$(BIN)/ruff check layered envs tests
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet torch==2.13.0
+	$(BIN)/python -m pip install --quiet -e ".[test]"
+	touch $@

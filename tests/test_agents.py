@@ -1,0 +1,83 @@
+"""The AEC agent view: PettingZoo conformance and the rewards and timing each layer receives."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from conftest import stack_recipe
+from pettingzoo.test import api_test
+
+from layered import make_aec_env
+
+DEPTHS = {1: [1], 2: [4, 1], 3: [4, 2, 1]}
+
+
+@pytest.mark.parametrize("kind", ["residual-clip", "gate"])
+@pytest.mark.parametrize("depth", [1, 2, 3])
+def test_pettingzoo_api(depth, kind):
+    env = make_aec_env(stack_recipe(DEPTHS[depth], kind), seed=0)
+    api_test(env, num_cycles=300)
+    env.close()
+
+
+def test_pettingzoo_api_mixed_combiners_on_mujoco():
+    env = make_aec_env(stack_recipe([4, 2, 1], ["gate", "residual-clip", "residual-clip"], env="InvertedPendulum-v5"))
+    api_test(env, num_cycles=200)
+    env.close()
+
+
+def test_a_slow_layers_reward_is_the_sum_over_its_period_and_info_has_the_span():
+    env = make_aec_env(stack_recipe([4]), seed=3)
+    plain = gym.make("Pendulum-v1")
+    plain.reset(seed=3)
+    action = np.array([0.7], np.float32)
+    expected = [sum(plain.step(action)[1] for _ in range(4)) for _ in range(2)]
+    got = []
+    for _ in env.agent_iter(max_iter=3):
+        _, reward, _, _, info = env.last()
+        got.append((reward, info["elapsed"]))
+        env.step(action)
+    assert got[0] == (0.0, 0)
+    assert [r for r, _ in got[1:]] == pytest.approx(expected, rel=1e-6)
+    assert [k for _, k in got[1:]] == [4, 4]
+
+
+def test_only_due_layers_are_yielded_and_a_committed_gate_silences_the_fast_layer():
+    env = make_aec_env(stack_recipe([4, 1], "gate"), seed=0)
+    commit, defer = np.array([0.5, 1.0], np.float32), np.array([0.5, -1.0], np.float32)
+    fast = np.array([0.1], np.float32)
+    order = []
+    for name in env.agent_iter(max_iter=8):
+        order.append((env.stack.t, name))
+        gate_out = commit if env.stack.t < 4 else defer
+        env.step(gate_out if name == "l0" else fast)
+    assert order[:5] == [(0, "l0"), (4, "l0"), (4, "l1"), (5, "l1"), (6, "l1")]
+
+
+def test_episode_end_reports_truncation_to_every_layer_then_removes_them():
+    env = make_aec_env(stack_recipe([4, 2, 1]), seed=0)
+    finals = {}
+    for name in env.agent_iter():
+        _, _, terminated, truncated, _ = env.last()
+        if terminated or truncated:
+            finals[name] = (terminated, truncated)
+            env.step(None)
+        else:
+            env.step(env.action_space(name).sample())
+    assert finals == {n: (False, True) for n in ("l0", "l1", "l2")}
+    assert env.episode_steps == 200 and env.agents == []
+
+
+def test_same_seed_same_trajectory():
+    def rollout(seed):
+        env = make_aec_env(stack_recipe([4, 1], "gate"), seed=seed, record=True)
+        for name in env.agent_iter():
+            _, _, term, trunc, _ = env.last()
+            space = env.action_space(name)
+            obs = env.observe(name)
+            env.step(None if term or trunc else np.tanh(obs[: space.shape[0]] * 3).astype(np.float32))
+        return np.array([(s.reward, *s.action) for s in env.trace]), [s.decided for s in env.trace]
+
+    a1, d1 = rollout(5)
+    a2, d2 = rollout(5)
+    assert np.array_equal(a1, a2) and d1 == d2
+    assert not np.array_equal(a1, rollout(6)[0])

@@ -1,0 +1,49 @@
+"""Combiners against values computed by hand."""
+
+import numpy as np
+import pytest
+
+from layered.combiners import COMBINERS, Gate, ResidualClip, Route
+
+LOW, HIGH = np.array([-2.0, -2.0]), np.array([2.0, 2.0])
+
+
+def test_registry_holds_both_paper_combiners():
+    assert {"residual-clip", "gate"} <= set(COMBINERS.names())
+    with pytest.raises(KeyError, match="known: gate, residual-clip"):
+        COMBINERS.get("sum")
+
+
+def test_residual_always_adds():
+    assert ResidualClip().route(np.array([5.0, -5.0])) is Route.ADD
+
+
+@pytest.mark.parametrize(("gate", "route"), [(0.01, Route.COMMIT), (0.0, Route.DEFER), (-0.7, Route.DEFER)])
+def test_gate_commits_only_when_its_last_output_is_positive(gate, route):
+    assert Gate().route(np.array([1.5, -0.3, gate])) is route
+
+
+def test_residual_without_threshold_admits_everything():
+    c = np.array([0.01, -0.02])
+    assert np.array_equal(ResidualClip().admit(np.array([1.0, 1.0]), c, LOW, HIGH), c)
+
+
+def test_threshold_all_dimensions():
+    combiner = ResidualClip(threshold=np.array([0.6, 0.6]))
+    above = np.array([1.0, -1.0])
+    # effects |clip(1.5)-1| = 0.5 and |clip(-1.1)+1| = 0.1: both below 0.6 -> dropped
+    assert np.array_equal(combiner.admit(above, np.array([0.5, -0.1]), LOW, HIGH), [0.0, 0.0])
+    # one effect of 0.7 >= 0.6 keeps the whole contribution
+    assert np.array_equal(combiner.admit(above, np.array([0.7, -0.1]), LOW, HIGH), [0.7, -0.1])
+
+
+def test_threshold_measures_the_effect_after_clipping():
+    combiner = ResidualClip(threshold=np.array([0.6, 0.6]))
+    # above is 1.8: adding 3.0 clips to 2.0, an effect of only 0.2 -> dropped
+    assert np.array_equal(combiner.admit(np.array([1.8, 1.8]), np.array([3.0, 3.0]), LOW, HIGH), [0.0, 0.0])
+
+
+def test_threshold_per_dimension():
+    combiner = ResidualClip(threshold=np.array([0.6, 0.6]), per_dimension=True)
+    out = combiner.admit(np.array([0.0, 0.0]), np.array([0.7, -0.1]), LOW, HIGH)
+    assert np.array_equal(out, [0.7, 0.0])

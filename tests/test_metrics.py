@@ -1,0 +1,47 @@
+"""Metric formulas against values computed by hand."""
+
+import numpy as np
+import pytest
+
+from layered.metrics import action_repetition, measure_episode, normalised_auc, summarise
+
+
+def a(*xs):
+    return np.array(xs, np.float32)
+
+
+def test_action_repetition_counts_exact_repeats_over_all_steps():
+    actions = [a(1.0), a(1.0), a(1.0), a(0.5), a(0.5)]  # steps 2, 3 and 5 repeat
+    assert action_repetition(actions) == pytest.approx(3 / 5)
+    assert action_repetition([a(1.0, 2.0), a(1.0, 2.0001)]) == 0.0
+    assert action_repetition([]) == 0.0
+
+
+def test_normalised_auc_is_the_trapezoid_over_range_and_span():
+    # returns -1550, -775, 0 over Pendulum's (-1550, 0): normalised 0, 0.5, 1 at steps 0, 10, 30
+    # area = 10 * (0 + 0.5) / 2 + 20 * (0.5 + 1) / 2 = 2.5 + 15 = 17.5; span 30
+    assert normalised_auc([0, 10, 30], [-1550, -775, 0], (-1550, 0)) == pytest.approx(17.5 / 30)
+    assert normalised_auc([0, 5000], [1000, 1000], (0, 1000)) == pytest.approx(1.0)
+    assert normalised_auc([7], [50], (0, 100)) == pytest.approx(0.5)
+
+
+def test_measure_episode_counts_decisions_and_activity():
+    m = measure_episode(
+        actions=[a(1.0), a(1.0), a(0.2), a(0.2)],
+        rewards=[-1.0, -2.0, -0.5, 0.0],
+        decided=[("slow", "fast"), ("fast",), (), ("fast",)],
+        acted=[("slow",), ("slow",), ("slow", "fast"), ("slow",)],
+        layers=["slow", "fast"],
+    )
+    assert (m.ret, m.steps, m.repetition, m.decisions) == (-3.5, 4, 0.5, 3)
+    assert m.decided == {"slow": 1, "fast": 3}
+    assert m.acted == {"slow": 4, "fast": 1}
+
+
+def test_summarise_means_returns_and_pools_activity_over_steps():
+    e1 = measure_episode([a(0.0)] * 2, [-1.0, -1.0], [("x",), ()], [("x",), ("x",)], ["x"])
+    e2 = measure_episode([a(0.0)] * 4, [0.0] * 4, [("x",)] * 4, [(), (), (), ()], ["x"])
+    s = summarise([e1, e2])
+    assert s.return_mean == pytest.approx(-1.0) and s.return_std == pytest.approx(1.0)
+    assert s.decisions == pytest.approx(2.5) and s.repetition == pytest.approx((0.5 + 0.75) / 2)
+    assert s.decided == {"x": pytest.approx(5 / 6)} and s.acted == {"x": pytest.approx(2 / 6)}

@@ -1,0 +1,158 @@
+"""Stack semantics by hand: who decides when, how held outputs merge, what each layer is paid."""
+
+import numpy as np
+import pytest
+from conftest import stack_recipe
+from gymnasium.spaces import Box
+
+from layered.combiners import Route
+from layered.stack import Stack
+
+OBS = Box(-1.0, 1.0, (3,), np.float32)
+ACT = Box(-2.0, 2.0, (1,), np.float32)
+
+
+def make(periods, kinds="residual-clip", **kw):
+    extra = {k: kw.pop(k) for k in list(kw) if k in ("combine",)}
+    return Stack(stack_recipe(periods, kinds, **extra), OBS, ACT, **kw)
+
+
+def decisions_at(stack, outputs):
+    """Layers that decide at the current step, each holding the given output once it decides."""
+    order, i = [], stack.next_due(0)
+    while i is not None:
+        order.append(i)
+        stack.hold(i, outputs[i])
+        i = stack.next_due(i + 1)
+    return order
+
+
+def test_each_layer_decides_on_multiples_of_its_period_slowest_first():
+    stack = make([4, 2, 1])
+    outs = [np.zeros(1)] * 3
+    schedule = []
+    for _ in range(8):
+        schedule.append(decisions_at(stack, outs))
+        stack.tick()
+    assert schedule == [[0, 1, 2], [2], [1, 2], [2], [0, 1, 2], [2], [1, 2], [2]]
+
+
+def test_a_committed_gate_blocks_the_layers_below_for_its_period():
+    stack = make([4, 1], "gate")
+    commit, defer, fast = np.array([1.0, 0.5]), np.array([1.0, -0.5]), np.array([0.3])
+    assert decisions_at(stack, [commit, fast]) == [0]
+    for _ in range(3):
+        stack.tick()
+        assert stack.next_due(0) is None
+    stack.tick()
+    assert decisions_at(stack, [defer, fast]) == [0, 1]
+    stack.tick()
+    assert decisions_at(stack, [defer, fast]) == [1]
+
+
+def test_residual_stack_sums_held_outputs_and_clips_once():
+    stack = make([4, 2, 1])
+    for i, a in enumerate([1.5, 0.4, 0.3]):
+        stack.hold(i, np.array([a]))
+    c = stack.compose()
+    assert c.action == pytest.approx([2.0])  # clip(1.5 + 0.4 + 0.3)
+    assert [float(c.contributions[i][0]) for i in range(3)] == pytest.approx([1.5, 0.4, 0.3])
+
+
+def test_evaluation_threshold_drops_small_residual_contributions():
+    # threshold 0.3 x max action 2 = 0.6; l1's effect 0.5 is dropped, l2's effect 0.7 is kept
+    stack = make([4, 2, 1], evaluation=True)
+    for i, a in enumerate([1.0, 0.5, 0.7]):
+        stack.hold(i, np.array([a]))
+    c = stack.compose()
+    assert c.action == pytest.approx([1.7])
+    assert float(c.contributions[1][0]) == 0.0
+
+
+def test_threshold_override_and_training_mode():
+    for kw, expected in [({"evaluation": True, "threshold": 0.1}, 1.5), ({"evaluation": False}, 1.5)]:
+        stack = make([2, 1], **kw)
+        stack.hold(0, np.array([1.0]))
+        stack.hold(1, np.array([0.5]))  # effect 0.5 >= 0.2 (override) and no threshold in training
+        assert stack.compose().action == pytest.approx([expected])
+
+
+def test_gate_over_residual_layers():
+    stack = make([4, 2, 1], ["gate", "residual-clip", "residual-clip"])
+    stack.hold(1, np.array([0.5]))
+    stack.hold(2, np.array([0.25]))
+    stack.hold(0, np.array([1.0, 1.0]))
+    c = stack.compose()
+    assert c.action == pytest.approx([1.0]) and set(c.contributions) == {0}
+    assert c.routes[0] is Route.COMMIT
+    stack.hold(0, np.array([1.0, -1.0]))
+    c = stack.compose()
+    assert c.action == pytest.approx([0.75])  # the gate defers: its own action is left out
+    assert float(c.contributions[0][0]) == 0.0
+
+
+def test_residual_over_gate_layers():
+    stack = make([4, 2, 1], ["residual-clip", "gate", "residual-clip"])
+    stack.hold(0, np.array([1.0]))
+    stack.hold(2, np.array([0.3]))
+    stack.hold(1, np.array([0.5, 1.0]))
+    assert stack.compose().action == pytest.approx([1.5])  # slow + committed mid
+    stack.hold(1, np.array([0.5, -1.0]))
+    assert stack.compose().action == pytest.approx([1.3])  # slow + fast in place of mid
+
+
+def test_absent_layers_contribute_nothing_and_never_decide():
+    stack = make([4, 2, 1], active=["l0", "l2"])
+    assert decisions_at(stack, [np.array([1.0]), np.array([9.0]), np.array([0.25])]) == [0, 2]
+    assert stack.compose().action == pytest.approx([1.25])
+
+
+def test_an_absent_gate_defers_and_the_fastest_present_layer_just_acts():
+    stack = make([4, 1], "gate", active=["l1"])
+    stack.hold(1, np.array([-0.5]))
+    assert stack.compose().action == pytest.approx([-0.5])
+
+
+def test_action_spaces_residual_range_is_scaled_and_gates_add_a_dimension():
+    recipe = stack_recipe([4, 1], "residual-clip")
+    fast = recipe.layers[1].model_copy(update={"action_scale": 2.0})
+    recipe = recipe.model_copy(update={"layers": [recipe.layers[0], fast]})
+    stack = Stack(recipe, OBS, ACT)
+    assert stack.layers[1].action_space == Box(-4.0, 4.0, (1,), np.float32)
+    gate = make([4, 1], "gate")
+    assert gate.layers[0].action_space == Box(np.array([-2, -1], np.float32), np.array([2, 1], np.float32))
+
+
+def test_observation_is_obs_plus_held_actions_of_the_named_slower_layers():
+    stack = make([4, 2, 1], ["gate", "residual-clip", "residual-clip"])
+    stack.hold(0, np.array([1.5, 1.0]))
+    stack.hold(1, np.array([-0.5]))
+    obs = np.array([0.1, 0.2, 0.3])
+    assert stack.observation(2, obs) == pytest.approx([0.1, 0.2, 0.3, 1.5, -0.5])  # no gate dimension
+    assert stack.observation_spaces[2].shape == (5,)
+    assert stack.observation(0, obs) == pytest.approx(obs)
+
+
+def test_rewards_action_penalty_is_mean_abs_action_over_the_layers_bound():
+    recipe = stack_recipe([4, 1])
+    fast = recipe.layers[1].model_copy(update={"action_scale": 2.0, "action_penalty": 1.0})
+    stack = Stack(recipe.model_copy(update={"layers": [recipe.layers[0], fast]}), OBS, ACT)
+    stack.hold(0, np.array([1.0]))
+    stack.hold(1, np.array([-1.0]))
+    rewards = stack.layer_rewards(-3.0, stack.compose())
+    assert rewards == pytest.approx({0: -3.0, 1: -3.0 - 1.0 / 4.0})  # |a| / (2 x max action 2)
+
+
+@pytest.mark.parametrize(("reward", "expected"), [(-3.0, -6.0), (0.0, 0.0), (2.0, 1.0)])
+def test_rewards_of_a_deferring_gate_are_scaled(reward, expected):
+    stack = make([4, 1], "gate")
+    stack.hold(0, np.array([1.0, -1.0]))
+    stack.hold(1, np.array([0.2]))
+    assert stack.layer_rewards(reward, stack.compose()) == pytest.approx({0: expected, 1: reward})
+    stack.hold(0, np.array([1.0, 1.0]))  # committed: plain reward for both
+    assert stack.layer_rewards(reward, stack.compose()) == pytest.approx({0: reward, 1: reward})
+
+
+def test_active_must_name_layers():
+    with pytest.raises(ValueError, match="non-empty subset"):
+        make([2, 1], active=["nope"])

@@ -1,0 +1,85 @@
+"""TD3: deterministic given a seed, save -> load gives identical behaviour, learns a simple target."""
+
+import numpy as np
+import pytest
+import torch
+from gymnasium.spaces import Box
+
+from layered.buffer import Transition
+from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from layered.learners.td3 import TD3, TD3Config
+
+OBS = Box(-1.0, 1.0, (3,), np.float32)
+ACT = Box(np.array([-2.0, 0.0], np.float32), np.array([2.0, 1.0], np.float32))
+CONFIG = TD3Config(hidden=(32, 32), batch_size=16)
+
+
+def filled(seed, n=64):
+    learner = TD3(OBS, ACT, CONFIG, seed)
+    rng = np.random.default_rng(0)
+    for _ in range(n):
+        o = rng.uniform(-1, 1, 3).astype(np.float32)
+        learner.observe(Transition(o, learner.random_action(), float(rng.normal()), o, False, 0.99))
+    return learner
+
+
+def test_actions_lie_in_the_box_with_and_without_noise():
+    learner = filled(0)
+    for explore in (False, True):
+        for _ in range(50):
+            a = learner.act(np.zeros(3, np.float32), explore)
+            assert ACT.contains(a)
+
+
+def test_same_seed_same_updates_and_actions():
+    a, b = filled(1), filled(1)
+    for _ in range(5):
+        sa, sb = a.update(), b.update()
+        assert sa == sb
+    obs = np.ones(3, np.float32) * 0.3
+    assert np.array_equal(a.act(obs, True), b.act(obs, True))
+    assert not np.array_equal(filled(2).act(obs, False), a.act(obs, False))
+
+
+def test_delayed_actor_updates():
+    learner = filled(0)
+    stats = [learner.update() for _ in range(4)]
+    assert [s.actor_loss is None for s in stats] == [True, False, True, False]
+
+
+def test_checkpoint_round_trip_gives_identical_behaviour(tmp_path):
+    a = filled(3)
+    for _ in range(4):
+        a.update()
+    save_checkpoint(tmp_path / "fast.pt", "fast", a.state_dict())
+    b = filled(4)
+    b.load_state_dict(load_checkpoint(tmp_path / "fast.pt", "fast"))
+    obs = np.full(3, 0.2, np.float32)
+    assert np.array_equal(a.act(obs, False), b.act(obs, False))
+    b.buffer, b.rng = a.buffer, np.random.default_rng(9)
+    a.rng = np.random.default_rng(9)
+    assert a.update() == b.update()
+
+
+def test_bad_checkpoints_are_clear_errors(tmp_path):
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        load_checkpoint(tmp_path / "x.pt", "x")
+    (tmp_path / "x.pt").write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        load_checkpoint(tmp_path / "x.pt", "x")
+    save_checkpoint(tmp_path / "y.pt", "slow", {"w": torch.zeros(1)})
+    with pytest.raises(CheckpointError, match="of layer 'fast'"):
+        load_checkpoint(tmp_path / "y.pt", "fast")
+
+
+def test_learns_the_best_action_of_a_one_step_problem():
+    """Reward -(a - 0.5)^2 with no future: the greedy action must approach 0.5."""
+    space = Box(-1.0, 1.0, (1,), np.float32)
+    learner = TD3(OBS, space, TD3Config(hidden=(32, 32), batch_size=64, lr=3e-3), seed=0)
+    obs = np.zeros(3, np.float32)
+    for _ in range(500):
+        a = learner.random_action()
+        learner.observe(Transition(obs, a, -float((a[0] - 0.5) ** 2), obs, True, 0.99))
+    for _ in range(600):
+        learner.update()
+    assert learner.act(obs, False)[0] == pytest.approx(0.5, abs=0.1)

@@ -1,0 +1,90 @@
+"""Brief training on real environments: every shipped recipe, deep stacks, determinism, the CLI."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import stack_recipe
+
+from layered import load_recipe
+from layered.trainer import train
+
+RECIPES = sorted((Path(__file__).parent.parent / "recipes").rglob("*.toml"))
+TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=100", "eval.episodes=1"]
+
+
+def check_run(out: Path, phases: int, layers: list[str]) -> dict:
+    results = json.loads((out / "results.json").read_text())
+    assert len(results["phases"]) == phases
+    final = results["phases"][-1]
+    for key in ("return_mean", "return_std", "auc", "repetition", "decisions", "episode_steps"):
+        assert final[key] is not None
+    assert 0 <= final["repetition"] <= 1 and 0 < final["decisions"] <= final["episode_steps"]
+    assert {f"decided_{n}" for n in final["active"]} <= set(final)
+    for name in layers:
+        assert (out / "checkpoints" / f"{name}.pt").exists()
+    assert (out / "curves.png").stat().st_size > 0 and (out / "recipe.toml").exists()
+    assert (out / "metrics.csv").read_text().count("\n") >= 2 * phases
+    return results
+
+
+@pytest.mark.parametrize("path", RECIPES, ids=lambda p: str(p.relative_to(p.parents[1])))
+def test_every_shipped_recipe_trains_briefly(path, tmp_path):
+    recipe = load_recipe(path, TINY)
+    train(recipe, tmp_path, max_steps=300, progress=False)
+    n = len(recipe.layers)
+    check_run(tmp_path, n, recipe.layer_names())
+
+
+@pytest.mark.parametrize(
+    "kinds", [["residual-clip"] * 3, ["gate", "gate", "residual-clip"], ["gate", "residual-clip", "residual-clip"]],
+    ids=["residual", "gated", "gate-over-residual"],
+)
+@pytest.mark.parametrize("order", ["slow-to-fast", "fast-to-slow"])
+def test_three_layer_stacks_train_and_report_every_metric(kinds, order, tmp_path):
+    recipe = load_recipe(stack_recipe([4, 2, 1], kinds).model_dump(), [*TINY, f"train.order={order}"])
+    train(recipe, tmp_path, max_steps=200, progress=False)
+    results = check_run(tmp_path, 3, ["l0", "l1", "l2"])
+    assert results["phases"][-1]["active"] == ["l0", "l1", "l2"]
+
+
+def test_explicit_phases_with_two_layers_learning_at_once(tmp_path):
+    data = stack_recipe([4, 1], "gate").model_dump()
+    data["train"] = {"phases": [{"learn": ["l1"]}, {"learn": ["l0", "l1"], "steps": 150}]}
+    train(load_recipe(data, TINY), tmp_path, max_steps=200, progress=False)
+    results = check_run(tmp_path, 2, ["l0", "l1"])
+    assert [p["steps"] for p in results["phases"]] == [200, 150]
+
+
+def test_same_seed_gives_the_same_run(tmp_path):
+    recipe = load_recipe(Path(RECIPES[0]).parent / "tla-c.toml", TINY)
+    for name in ("a", "b"):
+        train(recipe, tmp_path / name, max_steps=250, progress=False)
+    assert (tmp_path / "a" / "metrics.csv").read_text() == (tmp_path / "b" / "metrics.csv").read_text()
+    assert (tmp_path / "a" / "episodes.csv").read_text() == (tmp_path / "b" / "episodes.csv").read_text()
+
+
+def layered_cli(*args):
+    return subprocess.run([sys.executable, "-m", "layered.cli", *map(str, args)], capture_output=True, text=True)
+
+
+def test_cli_train_then_eval_with_threshold(tmp_path):
+    out = tmp_path / "run"
+    recipe = Path(RECIPES[0]).parent / "tla-c.toml"
+    proc = layered_cli("train", recipe, *TINY, "--steps", 200, "--seed", 4, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    assert "| phase | learns |" in proc.stdout and "phase 2: fast" in proc.stderr  # table and progress
+    assert load_recipe(out / "recipe.toml").train.seed == 4
+    proc = layered_cli("eval", out, "--episodes", 2, "--threshold", 0.0)
+    assert proc.returncode == 0, proc.stderr
+    written = json.loads((out / "eval" / "threshold-0.0-episodes-2.json").read_text())
+    assert f"{written['return_mean']:.1f}" in proc.stdout
+
+    before = sorted(p.name for p in out.iterdir())
+    assert layered_cli("train", recipe, "--out", out).returncode == 2  # never overwrites a run
+    assert sorted(p.name for p in out.iterdir()) == before
+    (out / "checkpoints" / "fast.pt").write_bytes(b"\0" * 10)
+    proc = layered_cli("eval", out)
+    assert proc.returncode == 2 and "not a readable checkpoint" in proc.stderr and "Traceback" not in proc.stderr
