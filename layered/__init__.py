@@ -2,6 +2,7 @@
 
 from layered.agents import LayeredEnv, make_aec_env
 from layered.recipe import Recipe, RecipeError, load_recipe
+from layered.trainer import train
 
-__all__ = ["LayeredEnv", "Recipe", "RecipeError", "load_recipe", "make_aec_env"]
+__all__ = ["LayeredEnv", "Recipe", "RecipeError", "load_recipe", "make_aec_env", "train"]
 __version__ = "0.1.0"
