@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from conftest import stack_recipe
 
-from layered import load_recipe
-from layered.trainer import train
+from layered import load_recipe, make_aec_env
+from layered.trainer import CsvLog, build_learners, phases_of, run_phase, train
 
 RECIPES = sorted((Path(__file__).parent.parent / "recipes").rglob("*.toml"))
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=100", "eval.episodes=1"]
@@ -88,3 +88,15 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     (out / "checkpoints" / "fast.pt").write_bytes(b"\0" * 10)
     proc = layered_cli("eval", out)
     assert proc.returncode == 2 and "not a readable checkpoint" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_time_limit_truncation_bootstraps_and_termination_does_not(tmp_path):
+    for env_id, terminates in (("Pendulum-v1", False), ("InvertedPendulum-v5", True)):
+        recipe = load_recipe(stack_recipe([1], env=env_id).model_dump(), [*TINY, "train.warmup=1000"])
+        learners = build_learners(recipe, make_aec_env(recipe))
+        run_phase(recipe, 0, phases_of(recipe)[0], 450, learners, CsvLog(tmp_path / f"{env_id}.csv"),
+                  CsvLog(tmp_path / f"{env_id}-ep.csv"), progress=False)
+        buffer = learners["l0"].buffer
+        not_done = buffer._not_done[: len(buffer)]
+        assert len(buffer) >= 400  # Pendulum: two truncated episodes stored whole
+        assert bool((not_done == 0).any()) is terminates
