@@ -1,6 +1,13 @@
 """Environment families behind one id scheme, `family:name` (the family defaults to `gym`)."""
 
-from layered.envs import gymnasium_family as _gymnasium_family  # noqa: F401  (registers "gym")
-from layered.envs.registry import FAMILIES, EnvFamily, EnvInfo, env_info, make_env, split_id
+import os
 
-__all__ = ["FAMILIES", "EnvFamily", "EnvInfo", "env_info", "make_env", "split_id"]
+if "DISPLAY" not in os.environ:  # headless: MuJoCo must render through EGL, chosen before it loads
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+from layered.envs import dm_control_family as _dm_control_family  # noqa: F401  (registers "dmc")
+from layered.envs import gymnasium_family as _gymnasium_family  # noqa: F401  (registers "gym")
+from layered.envs import robotics_family as _robotics_family  # noqa: F401  (registers "robotics")
+from layered.envs.registry import FAMILIES, EnvFamily, EnvInfo, control_timestep, env_info, make_env, split_id
+
+__all__ = ["FAMILIES", "EnvFamily", "EnvInfo", "control_timestep", "env_info", "make_env", "split_id"]

@@ -30,6 +30,11 @@ class EnvFamily(ABC):
     def info(self, name: str) -> EnvInfo:
         """Constants of `name`; raises KeyError naming the problem when `name` is unknown."""
 
+    def timestep(self, env: gym.Env) -> float | None:
+        """Seconds of one base step of `env`, or None when the environment does not define it."""
+        dt = getattr(env.unwrapped, "dt", None)
+        return None if dt is None else float(dt)
+
 
 FAMILIES: Registry[type[EnvFamily]] = Registry("environment family")
 
@@ -44,6 +49,17 @@ def make_env(env_id: str, render_mode: str | None = None) -> gym.Env:
     """A new environment for a recipe id."""
     family, name = split_id(env_id)
     return FAMILIES.get(family)().make(name, render_mode=render_mode)
+
+
+def control_timestep(env_id: str) -> float | None:
+    """Seconds of one base step of a recipe id's environment, or None if it defines none."""
+    family, name = split_id(env_id)
+    source = FAMILIES.get(family)()
+    env = source.make(name)
+    try:
+        return source.timestep(env)
+    finally:
+        env.close()
 
 
 def env_info(env_id: str) -> EnvInfo:

@@ -11,7 +11,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from layered.combiners import COMBINERS
-from layered.envs import env_info
+from layered.envs import control_timestep, env_info
 from layered.learners import LEARNERS
 from layered.orders import ORDERS
 
@@ -56,8 +56,12 @@ class LayerConfig(Section):
 
     name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_-]*$")
     """Unique name, used in `sees`, in phases and as the agent's name."""
-    period: int = Field(gt=0)
+    period: int | None = Field(None, gt=0)
     """Base environment steps between decisions; must divide the period of the layer above."""
+    response_time: float | None = Field(None, gt=0)
+    """The period in seconds instead of steps; must be a whole number of the env's control timestep."""
+    delay: int = Field(0, ge=0)
+    """Decisions between choosing an action and its taking effect (1: the real-time setting)."""
     sees: list[str] = ["obs"]
     """What the layer observes: `obs` and the names of slower layers whose held actions it sees."""
     combine: str | None = None
@@ -187,7 +191,7 @@ def _check_layers(recipe: Recipe) -> list[tuple[str, str]]:
         if names.index(layer.name) != i:
             problems.append((f"{where}.name", f"layer name {layer.name!r} is used twice"))
         above = recipe.layers[i - 1] if i else None
-        if above is not None and above.period % layer.period:
+        if above is not None and above.period % layer.period:  # type: ignore[operator]  # resolved to ints
             problems.append((f"{where}.period", f"period {layer.period} does not divide the period {above.period} of "
                              f"layer {above.name!r} above it (layers are listed slowest first)"))
         problems += [(f"{where}.sees", f"{seen!r} is neither 'obs' nor a slower layer than {layer.name!r}")
@@ -317,10 +321,43 @@ def load_recipe(source: str | Path | Mapping[str, Any], overrides: Iterable[str]
         recipe = Recipe.model_validate(data)
     except ValidationError as e:
         raise RecipeError(label, [(_key(err["loc"]), _describe(err)) for err in e.errors()]) from None
-    problems = _check_stack(recipe)
+    recipe, problems = _resolve_periods(recipe)
+    problems = problems or _check_stack(recipe)
     if problems:
         raise RecipeError(label, problems)
     return recipe
+
+
+def _resolve_periods(recipe: Recipe) -> tuple[Recipe, list[tuple[str, str]]]:
+    """Every layer's period in base steps, converting response times with the env's timestep."""
+    problems: list[tuple[str, str]] = []
+    dt: float | None = None
+    layers = []
+    for i, layer in enumerate(recipe.layers):
+        if layer.response_time is None:
+            if layer.period is None:
+                problems.append((f"layers[{i}]", "give the layer a period (steps) or a response_time (seconds)"))
+            layers.append(layer)
+            continue
+        if dt is None:
+            try:
+                dt = control_timestep(recipe.env.id)
+            except KeyError as e:
+                return recipe, [("env.id", str(e.args[0]))]
+            if dt is None:
+                return recipe, [(f"layers[{i}].response_time",
+                                 f"{recipe.env.id} defines no control timestep; give the period in steps")]
+        steps = layer.response_time / dt
+        if abs(steps - round(steps)) > 1e-6 * max(1.0, steps) or round(steps) < 1:
+            problems.append((f"layers[{i}].response_time", f"{layer.response_time} s is not a whole number of "
+                             f"the environment's {dt:g} s steps ({steps:.4g} steps)"))
+        elif layer.period is not None and layer.period != round(steps):
+            problems.append((f"layers[{i}].period", f"period {layer.period} disagrees with response_time "
+                             f"{layer.response_time} s = {round(steps)} steps of {dt:g} s"))
+        else:
+            layer = layer.model_copy(update={"period": round(steps)})
+        layers.append(layer)
+    return recipe.model_copy(update={"layers": layers}), problems
 
 
 def _deep_copy(data: Any) -> Any:

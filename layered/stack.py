@@ -29,6 +29,7 @@ class Layer:
     half_range: np.ndarray  # half-width of the layer's action dims, for the action penalty
     action_penalty: float
     defer_reward_scale: tuple[float, float]
+    delay: int  # decisions between choosing an output and its taking effect
 
     @property
     def is_gate(self) -> bool:
@@ -87,13 +88,14 @@ class Stack:
             space = _layer_action_space(recipe, i, action_space, kind.gate_dims)
             self.layers.append(Layer(
                 name=cfg.name,
-                period=cfg.period,
+                period=int(cfg.period or 0),
                 sees=tuple(names.index(s) for s in cfg.sees if s != "obs"),
                 combiner=combiner,
                 action_space=space,
                 half_range=((space.high - space.low) / 2)[: self.action_dim],
                 action_penalty=cfg.action_penalty,
                 defer_reward_scale=cfg.defer_reward_scale,
+                delay=cfg.delay,
             ))
         wanted = names if active is None else list(active)
         unknown = [n for n in wanted if n not in names]
@@ -103,6 +105,8 @@ class Stack:
         self.observation_spaces = [self._observation_space(obs_space, layer) for layer in self.layers]
         self.evaluation = evaluation
         self.held = [np.zeros(layer.action_space.shape, np.float32) for layer in self.layers]
+        # outputs chosen but not yet in effect, oldest first (the real-time setting)
+        self.inflight = [np.zeros((layer.delay, *layer.action_space.shape), np.float32) for layer in self.layers]
         self.t = 0
 
     def _observation_space(self, obs_space: Box, layer: Layer) -> Box:
@@ -111,18 +115,23 @@ class Stack:
             space = self.layers[j].action_space
             lows.append(np.minimum(space.low[: self.action_dim], 0))
             highs.append(np.maximum(space.high[: self.action_dim], 0))
+        own = layer.action_space
+        lows += [np.minimum(own.low, 0)] * layer.delay  # its own outputs in flight
+        highs += [np.maximum(own.high, 0)] * layer.delay
         return Box(np.concatenate(lows).astype(np.float32), np.concatenate(highs).astype(np.float32), dtype=np.float32)
 
     def reset(self) -> None:
         """Start an episode: step 0, every held output zero."""
         self.t = 0
-        for out in self.held:
+        for out in (*self.held, *self.inflight):
             out.fill(0.0)
 
     def observation(self, i: int, obs: np.ndarray) -> np.ndarray:
-        """What layer i sees: the env observation plus the actions its named slower layers hold."""
+        """What layer i sees: the env observation, the actions its named slower layers hold, and
+        its own outputs still in flight (oldest first) when it acts with a delay."""
         parts = [np.asarray(obs, np.float32).ravel()]
         parts += [self.held[j][: self.action_dim] for j in self.layers[i].sees]
+        parts.append(self.inflight[i].ravel())
         return np.concatenate(parts)
 
     def _route(self, position: int, i: int) -> Route:
@@ -141,9 +150,14 @@ class Stack:
         return None
 
     def hold(self, i: int, output: np.ndarray) -> None:
-        """Layer i decided `output`; it is held until its next decision."""
+        """Layer i decided `output`; it is held until its next decision, or, with a delay of d,
+        takes effect d decisions later while the oldest output in flight takes effect now."""
         space = self.layers[i].action_space
-        self.held[i] = np.clip(np.asarray(output, np.float32).reshape(space.shape), space.low, space.high)
+        output = np.clip(np.asarray(output, np.float32).reshape(space.shape), space.low, space.high)
+        queue = self.inflight[i]
+        if len(queue):
+            output, queue[:-1], queue[-1] = queue[0].copy(), queue[1:].copy(), output
+        self.held[i] = output
 
     def compose(self) -> Composition:
         """Walk the present layers slowest first and merge their held outputs into the action."""

@@ -1,58 +1,90 @@
-"""The pinned versions work together: every environment family imports and steps on one mujoco."""
+"""Environment families: one id scheme, the pinned versions stepping on one mujoco, the adapters' contracts."""
 
 import os
 
-import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import stack_recipe
+from gymnasium.utils.env_checker import check_env
+from pettingzoo.test import api_test
 
 import layered.envs as envs
+from layered import make_aec_env
+
+ONE_PER_FAMILY = ["Pendulum-v1", "gym:InvertedPendulum-v5", "dmc:cartpole-swingup", "robotics:PointMaze_UMaze-v3",
+                  "robotics:AntMaze_UMaze-v5", "robotics:FetchReach-v4"]
 
 
-def test_gymnasium_classic_and_mujoco_through_the_registry():
-    for env_id in ("Pendulum-v1", "gym:InvertedPendulum-v5"):
-        env = envs.make_env(env_id)
-        env.reset(seed=0)
-        for _ in range(5):
-            env.step(env.action_space.sample())
-        env.close()
+@pytest.mark.parametrize("env_id", ONE_PER_FAMILY)
+def test_every_family_steps_and_passes_the_gymnasium_checker(env_id):
+    env = envs.make_env(env_id)
+    check_env(env, skip_render_check=True)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == env.observation_space.shape
+    for _ in range(5):
+        env.step(env.action_space.sample())
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", ["dmc:walker-walk", "robotics:PointMaze_UMazeDense-v3"])
+def test_stacks_on_other_families_pass_the_pettingzoo_checker(env_id):
+    env = make_aec_env(stack_recipe([2, 1], ["gate", "residual-clip"], env=env_id), seed=0)
+    api_test(env, num_cycles=100)
+    env.close()
+
+
+def test_dm_control_adapter_matches_the_suites_own_specs():
+    from dm_control import suite
+
+    native = suite.load("walker", "walk", task_kwargs={"random": 0})
+    env = envs.make_env("dmc:walker-walk")
+    size = sum(int(np.prod(s.shape)) for s in native.observation_spec().values())
+    spec = native.action_spec()
+    assert env.observation_space.shape == (size,)
+    assert np.array_equal(env.action_space.low, spec.minimum) and np.array_equal(env.action_space.high, spec.maximum)
+    assert env.unwrapped.dt == pytest.approx(native.control_timestep()) == envs.control_timestep("dmc:walker-walk")
+    first, _ = env.reset(seed=0)
+    again, _ = env.reset(seed=0)
+    other, _ = env.reset(seed=1)
+    assert np.array_equal(first, again) and not np.array_equal(first, other)
+
+
+def test_dm_control_time_limit_is_truncation():
+    env = envs.make_env("dmc:cartpole-balance")
+    env.reset(seed=0)
+    steps, terminated, truncated = 0, False, False
+    while not (terminated or truncated):
+        _, reward, terminated, truncated, _ = env.step(np.zeros(1, np.float32))
+        assert 0.0 <= reward <= 1.0
+        steps += 1
+    assert (steps, terminated, truncated) == (1000, False, True)
+
+
+def test_goal_conditioned_observations_are_flattened_in_sorted_key_order():
+    env = envs.make_env("robotics:PointMaze_UMaze-v3")
+    flat, _ = env.reset(seed=0)
+    inner = env.unwrapped
+    goal = inner.goal
+    assert flat.shape == (8,)  # achieved_goal (2), desired_goal (2), observation (4)
+    assert np.allclose(flat[2:4], goal)
 
 
 def test_unknown_environments_are_clear_errors():
-    with pytest.raises(KeyError, match="did you mean"):
+    with pytest.raises(KeyError, match="did you mean Pendulum-v1"):
         envs.env_info("Pendulm-v1")
     with pytest.raises(KeyError, match="unknown environment family 'atari'"):
         envs.env_info("atari:Pong")
     with pytest.raises(KeyError, match="Discrete action space"):
         envs.make_env("CartPole-v1")
+    with pytest.raises(KeyError, match="did you mean cartpole-swingup"):
+        envs.env_info("dmc:cartpole-swingupp")
 
 
-def test_dm_control_suite_steps():
-    from dm_control import suite
-
-    env = suite.load("cartpole", "swingup", task_kwargs={"random": 0})
-    spec = env.action_spec()
-    ts = env.reset()
-    for _ in range(5):
-        ts = env.step(np.zeros(spec.shape))
-    assert ts.observation
-
-
-def test_gymnasium_robotics_maze_steps():
-    import gymnasium_robotics
-
-    gym.register_envs(gymnasium_robotics)
-    env = gym.make("PointMaze_UMaze-v3")
-    obs, _ = env.reset(seed=0)
-    assert set(obs) == {"observation", "achieved_goal", "desired_goal"}
-    env.step(env.action_space.sample())
-    env.close()
-
-
-def test_headless_rendering():
+@pytest.mark.parametrize("env_id", ["gym:InvertedPendulum-v5", "dmc:cartpole-swingup", "robotics:PointMaze_UMaze-v3"])
+def test_headless_rendering(env_id):
     assert os.environ.get("MUJOCO_GL") in ("egl", "osmesa")
-    env = gym.make("InvertedPendulum-v5", render_mode="rgb_array", width=64, height=48)
+    env = envs.make_env(env_id, render_mode="rgb_array")
     env.reset(seed=0)
     frame = env.render()
     env.close()
-    assert frame.shape == (48, 64, 3) and frame.any()
+    assert frame.ndim == 3 and frame.shape[2] == 3 and frame.any()

@@ -129,3 +129,22 @@ def test_cli_bad_recipe_exits_2_without_touching_the_output(tmp_path):
         assert proc.returncode == 2, proc.stderr
         assert "Traceback" not in proc.stderr and proc.stderr.strip()
         assert not out.exists()
+
+
+def test_response_times_in_seconds_become_periods_in_steps():
+    data = base()
+    data["layers"] = [{"name": "slow", "response_time": 0.2}, {"name": "fast", "response_time": 0.05, "period": 1}]
+    r = load_recipe(data)  # Pendulum-v1 steps 0.05 s
+    assert [layer.period for layer in r.layers] == [4, 1]
+    data["layers"][0]["response_time"] = 0.07
+    (line,) = errors(data)
+    assert "layers[0].response_time: 0.07 s is not a whole number of the environment's 0.05 s steps" in line
+    data["layers"][0] = {"name": "slow", "response_time": 0.2, "period": 2}
+    assert "disagrees with response_time" in errors(data)[0]
+    data["layers"][0] = {"name": "slow"}
+    assert "give the layer a period" in errors(data)[0]
+
+
+def test_response_time_needs_an_env_with_a_timestep():
+    data = {"env": {"id": "MountainCarContinuous-v0"}, "layers": [{"name": "a", "response_time": 1.0}]}
+    assert "defines no control timestep" in errors(data)[0]

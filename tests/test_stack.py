@@ -156,3 +156,46 @@ def test_rewards_of_a_deferring_gate_are_scaled(reward, expected):
 def test_active_must_name_layers():
     with pytest.raises(ValueError, match="non-empty subset"):
         make([2, 1], active=["nope"])
+
+
+def delayed(periods, delay, kinds="residual-clip"):
+    recipe = stack_recipe(periods, kinds)
+    layers = [layer.model_copy(update={"delay": delay}) for layer in recipe.layers]
+    return Stack(recipe.model_copy(update={"layers": layers}), OBS, ACT)
+
+
+def test_a_delayed_layers_action_takes_effect_one_decision_later():
+    stack = delayed([1], 1)
+    stack.hold(0, np.array([0.5]))
+    assert stack.compose().action == pytest.approx([0.0])  # the initial in-flight action
+    assert stack.observation(0, np.zeros(3)) == pytest.approx([0, 0, 0, 0.5])  # sees what is in flight
+    stack.tick()
+    stack.hold(0, np.array([-1.0]))
+    assert stack.compose().action == pytest.approx([0.5])
+    assert stack.observation(0, np.zeros(3))[-1] == pytest.approx(-1.0)
+    assert stack.observation_spaces[0].shape == (4,)
+
+
+def test_each_layers_delay_is_its_own_period_so_slow_actions_land_later():
+    stack = delayed([2, 1], 1)
+    executed = []
+    for t in range(5):  # the slow layer chooses 1.0 at t=0 and 0.5 at t=2; the fast 0.1 every step
+        if t % 2 == 0:
+            stack.hold(0, np.array([1.0 if t == 0 else 0.5]))
+        stack.hold(1, np.array([0.1]))
+        executed.append(float(stack.compose().action[0]))
+        stack.tick()
+    # fast lands one step later (t >= 1), slow one slow period later (1.0 from t=2, 0.5 from t=4)
+    assert executed == pytest.approx([0.0, 0.1, 1.1, 1.1, 0.6])
+
+
+def test_a_delay_of_two_decisions_queues_in_order():
+    stack = delayed([1], 2)
+    seen = []
+    for a in (0.1, 0.2, 0.3, 0.4):
+        stack.hold(0, np.array([a]))
+        seen.append(float(stack.compose().action[0]))
+    assert seen == pytest.approx([0.0, 0.0, 0.1, 0.2])
+    assert stack.observation(0, np.zeros(3))[3:] == pytest.approx([0.3, 0.4])
+    stack.reset()
+    assert stack.observation(0, np.zeros(3))[3:] == pytest.approx([0.0, 0.0])
