@@ -30,8 +30,8 @@ RETURN_RANGES: dict[str, tuple[float, float]] = {
 
 
 def _register() -> None:
-    # Importing gymnasium-robotics prints a notice about Adroit reward versions; keep it quiet.
-    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+    # Importing gymnasium-robotics prints a notice about Adroit reward versions to stderr; keep it quiet.
+    with warnings.catch_warnings(), contextlib.redirect_stderr(io.StringIO()):
         warnings.simplefilter("ignore")
         import gymnasium_robotics
 

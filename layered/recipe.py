@@ -305,13 +305,7 @@ def load_recipe(source: str | Path | Mapping[str, Any], overrides: Iterable[str]
     if isinstance(source, Mapping):
         label, data = "<recipe>", _deep_copy(dict(source))
     else:
-        label = str(source)
-        try:
-            data = tomllib.loads(Path(source).read_text())
-        except FileNotFoundError:
-            raise RecipeError(label, [("", "no such recipe file")]) from None
-        except tomllib.TOMLDecodeError as e:
-            raise RecipeError(label, [("", f"not valid TOML: {e}")]) from None
+        label, data = str(source), read_recipe_file(Path(source))
     overrides = list(overrides)
     for override in overrides:
         apply_override(data, override)
@@ -358,6 +352,35 @@ def _resolve_periods(recipe: Recipe) -> tuple[Recipe, list[tuple[str, str]]]:
             layer = layer.model_copy(update={"period": round(steps)})
         layers.append(layer)
     return recipe.model_copy(update={"layers": layers}), problems
+
+
+def read_recipe_file(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """The raw table of a recipe file, merged over the file it `extends` (a path relative to it).
+
+    Tables merge key by key; any other value, lists of layers included, replaces the base's.
+    """
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise RecipeError(str(path), [("", "no such recipe file")]) from None
+    except tomllib.TOMLDecodeError as e:
+        raise RecipeError(str(path), [("", f"not valid TOML: {e}")]) from None
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise RecipeError(str(path), [("extends", f"expected the path of a recipe file (got {base!r})")])
+    base_path = (path.parent / base).resolve()
+    if base_path in _seen:
+        raise RecipeError(str(path), [("extends", f"{base} extends itself through {', '.join(map(str, _seen))}")])
+    return _merge(read_recipe_file(base_path, (*_seen, path.resolve())), data)
+
+
+def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in top.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
 
 
 def _deep_copy(data: Any) -> Any:

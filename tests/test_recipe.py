@@ -148,3 +148,21 @@ def test_response_times_in_seconds_become_periods_in_steps():
 def test_response_time_needs_an_env_with_a_timestep():
     data = {"env": {"id": "MountainCarContinuous-v0"}, "layers": [{"name": "a", "response_time": 1.0}]}
     assert "defines no control timestep" in errors(data)[0]
+
+
+def test_a_recipe_can_extend_another(tmp_path):
+    (tmp_path / "child.toml").write_text(
+        f'extends = "{TLA_C}"\n[env]\nid = "MountainCarContinuous-v0"\n[train]\nsteps_per_phase = 500\n'
+    )
+    r = load_recipe(tmp_path / "child.toml")
+    parent = load_recipe(TLA_C)
+    assert r.env.id == "MountainCarContinuous-v0" and r.train.steps_per_phase == 500
+    assert r.layers == parent.layers and r.train.order == parent.train.order and r.eval == parent.eval
+
+
+def test_extends_errors(tmp_path):
+    (tmp_path / "a.toml").write_text('extends = "b.toml"\n')
+    (tmp_path / "b.toml").write_text('extends = "a.toml"\n')
+    assert "extends itself" in errors(tmp_path / "a.toml")[0]
+    (tmp_path / "c.toml").write_text('extends = "missing.toml"\n')
+    assert "missing.toml: (top level): no such recipe file" in errors(tmp_path / "c.toml")[0]
