@@ -74,7 +74,7 @@ def _eval(args: argparse.Namespace) -> int:
     active = list(phases_of(recipe)[-1].active)
     env = make_aec_env(recipe, active=active, evaluation=True, threshold=args.threshold, record=True)
     episodes = args.episodes or recipe.eval.episodes
-    result = evaluate(env, learners, episodes, recipe.train.seed + recipe.eval.seed_offset)
+    result = evaluate(env, learners, episodes, recipe.train.seed + recipe.eval.seed_offset, progress=True)
     env.close()
     threshold = args.threshold if args.threshold is not None else "recipe"
     row = {"phase": "eval", "learn": [], "active": active, "auc": None, "threshold": threshold,

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from tqdm import tqdm
+
 from layered.agents import LayeredEnv
 from layered.learners import Learner
 from layered.metrics import EpisodeMeasures, Evaluation, measure_episode, summarise
@@ -22,7 +24,10 @@ def run_episode(env: LayeredEnv, learners: Mapping[str, Learner], seed: int | No
     )
 
 
-def evaluate(env: LayeredEnv, learners: Mapping[str, Learner], episodes: int, seed: int) -> Evaluation:
+def evaluate(
+    env: LayeredEnv, learners: Mapping[str, Learner], episodes: int, seed: int, progress: bool = False
+) -> Evaluation:
     """Mean measures over `episodes` episodes; the env is seeded once, so every call sees the same starts."""
     assert env.record, "evaluation needs an env made with record=True"
-    return summarise([run_episode(env, learners, seed if k == 0 else None) for k in range(episodes)])
+    runs = tqdm(range(episodes), desc="evaluating", unit="episode", disable=not progress)
+    return summarise([run_episode(env, learners, seed if k == 0 else None) for k in runs])

@@ -80,7 +80,7 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     proc = layered_cli("eval", out, "--episodes", 2, "--threshold", 0.0)
     assert proc.returncode == 0, proc.stderr
     written = json.loads((out / "eval" / "threshold-0.0-episodes-2.json").read_text())
-    assert f"{written['return_mean']:.1f}" in proc.stdout
+    assert f"{written['return_mean']:.1f}" in proc.stdout and "evaluating" in proc.stderr
 
     before = sorted(p.name for p in out.iterdir())
     assert layered_cli("train", recipe, "--out", out).returncode == 2  # never overwrites a run
