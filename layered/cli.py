@@ -12,7 +12,7 @@ import torch
 
 from layered.checkpoint import CheckpointError
 from layered.recipe import RecipeError, load_recipe
-from layered.report import results_table
+from layered.report import plot_episode, results_table
 
 EXIT_BAD_INPUT = 2
 
@@ -35,6 +35,7 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--episodes", type=int, help="episodes (default: the recipe's eval.episodes)")
     ev.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--threads", type=int, help="torch threads")
+    ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
     return parser
 
 
@@ -75,7 +76,6 @@ def _eval(args: argparse.Namespace) -> int:
     env = make_aec_env(recipe, active=active, evaluation=True, threshold=args.threshold, record=True)
     episodes = args.episodes or recipe.eval.episodes
     result = evaluate(env, learners, episodes, recipe.train.seed + recipe.eval.seed_offset, progress=True)
-    env.close()
     threshold = args.threshold if args.threshold is not None else "recipe"
     row = {"phase": "eval", "learn": [], "active": active, "auc": None, "threshold": threshold,
            "episodes": episodes, **result.row()}
@@ -84,6 +84,11 @@ def _eval(args: argparse.Namespace) -> int:
     out.write_text(json.dumps(row, indent=2))
     print(results_table([row]))
     print(f"written to {out}")
+    if args.plot:
+        png = out.with_suffix(".png")
+        plot_episode(env.trace, env.possible_agents, png, f"{recipe.env.id}: last evaluation episode")
+        print(f"episode plot: {png}")
+    env.close()
     return 0
 
 

@@ -52,3 +52,34 @@ def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
     ax.legend()
     fig.savefig(out_png, dpi=120)
     plt.close(fig)
+
+
+def plot_episode(trace: Sequence[Any], layers: Sequence[str], out_png: Path, title: str) -> None:
+    """One episode: above, when each layer decided (ticks) and contributed a non-zero part of the
+    action (squares); below, the executed action per dimension."""
+    steps = range(len(trace))
+    fig, (top, bottom) = plt.subplots(
+        2, 1, figsize=(9, 2 + 0.4 * len(layers)), sharex=True, constrained_layout=True,
+        gridspec_kw={"height_ratios": [max(1, len(layers)), 3]},
+    )
+    for row, name in enumerate(layers):
+        decided = [t for t in steps if name in trace[t].decided]
+        acted = [t for t in steps if name in trace[t].acted]
+        top.scatter(decided, [row] * len(decided), marker="|", s=60, color="0.6", label="decided" if row == 0 else None)
+        top.scatter(acted, [row + 0.25] * len(acted), marker="s", s=6, color=f"C{row}",
+                    label="contributed" if row == 0 else None)
+    top.set_yticks(range(len(layers)), layers)
+    top.set_ylim(-0.6, len(layers) - 0.2)
+    top.invert_yaxis()
+    top.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize="small", ncols=2, frameon=False)
+    top.set_title(title, loc="left")
+    actions = [record.action for record in trace]
+    for d in range(len(actions[0]) if actions else 0):
+        bottom.step(list(steps), [a[d] for a in actions], where="post", lw=1, label=f"action[{d}]")
+    bottom.set_xlabel("base step")
+    bottom.set_ylabel("executed action")
+    bottom.grid(alpha=0.3)
+    if actions and len(actions[0]) <= 8:
+        bottom.legend(loc="upper right", fontsize="small", ncols=4)
+    fig.savefig(out_png, dpi=120)
+    plt.close(fig)

@@ -77,9 +77,10 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "| phase | learns |" in proc.stdout and "phase 2: fast" in proc.stderr  # table and progress
     assert load_recipe(out / "recipe.toml").train.seed == 4
-    proc = layered_cli("eval", out, "--episodes", 2, "--threshold", 0.0)
+    proc = layered_cli("eval", out, "--episodes", 2, "--threshold", 0.0, "--plot")
     assert proc.returncode == 0, proc.stderr
     written = json.loads((out / "eval" / "threshold-0.0-episodes-2.json").read_text())
+    assert (out / "eval" / "threshold-0.0-episodes-2.png").stat().st_size > 0
     assert f"{written['return_mean']:.1f}" in proc.stdout and "evaluating" in proc.stderr
 
     before = sorted(p.name for p in out.iterdir())
