@@ -70,7 +70,7 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self._cumulative_rewards = dict.fromkeys(self.agents, 0.0)
         self.terminations = dict.fromkeys(self.agents, False)
         self.truncations = dict.fromkeys(self.agents, False)
-        self.infos = {a: {"elapsed": 0} for a in self.agents}
+        self.infos = {a: self._fresh_info(self._index[a]) for a in self.agents}
         self._decided = []
         self.trace = []
         self.episode_return = 0.0
@@ -91,7 +91,7 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
             raise ValueError(f"layer {agent!r} is due and must be given an action, not None")
         i = self._index[agent]
         self._cumulative_rewards[agent] = 0.0
-        self.infos[agent] = {"elapsed": 0}
+        self.infos[agent] = self._fresh_info(i)
         self.rewards = dict.fromkeys(self.agents, 0.0)
         self.stack.hold(i, action)
         self._decided.append(agent)
@@ -107,6 +107,13 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
             self.agent_selection = self.stack.layers[due].name
         self._accumulate_rewards()
 
+    def _fresh_info(self, i: int) -> dict[str, Any]:
+        """A layer's info right after it decides. A layer that may repeat its output also gets
+        `path`: (observation, reward) at the end of each of its periods while it holds it."""
+        if self.stack.layers[i].max_repeat > 1:
+            return {"elapsed": 0, "path": [], "period_reward": 0.0}
+        return {"elapsed": 0}
+
     def _base_step(self) -> bool:
         """Execute the composed action for one base step; True when the episode ended."""
         composition = self.stack.compose()
@@ -114,7 +121,13 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         for i, r in self.stack.layer_rewards(float(reward), composition).items():
             name = self.stack.layers[i].name
             self.rewards[name] += r
-            self.infos[name]["elapsed"] += 1
+            info = self.infos[name]
+            info["elapsed"] += 1
+            if "path" in info:
+                info["period_reward"] += r
+                if (self.stack.t + 1) % self.stack.layers[i].period == 0 or terminated or truncated:
+                    info["path"].append((self.stack.observation(i, self._obs), info["period_reward"]))
+                    info["period_reward"] = 0.0
         if self.record:
             acted = tuple(self.stack.layers[i].name for i, c in composition.contributions.items() if np.any(c != 0))
             self.trace.append(StepRecord(composition.action, float(reward), tuple(self._decided), acted))

@@ -62,6 +62,9 @@ class LayerConfig(Section):
     """The period in seconds instead of steps; must be a whole number of the env's control timestep."""
     delay: int = Field(0, ge=0)
     """Decisions between choosing an action and its taking effect (1: the real-time setting)."""
+    max_repeat: int = Field(1, ge=1)
+    """Above 1 the layer also chooses for how many of its periods (1..max_repeat) to hold its
+    output before deciding again, as TempoRL's skip policy; its output gains that count."""
     sees: list[str] = ["obs"]
     """What the layer observes: `obs` and the names of slower layers whose held actions it sees."""
     combine: str | None = None

@@ -30,10 +30,15 @@ class Layer:
     action_penalty: float
     defer_reward_scale: tuple[float, float]
     delay: int  # decisions between choosing an output and its taking effect
+    max_repeat: int  # > 1: the output's last entry says for how many periods to hold it
 
     @property
     def is_gate(self) -> bool:
         return self.combiner.gate_dims > 0
+
+    def repeats(self, output: np.ndarray) -> int:
+        """For how many of its periods the layer holds `output` before deciding again."""
+        return int(np.clip(np.rint(output[-1]), 1, self.max_repeat)) if self.max_repeat > 1 else 1
 
 
 @dataclass(frozen=True)
@@ -46,7 +51,8 @@ class Composition:
 
 
 def _layer_action_space(recipe: Recipe, i: int, env_space: Box, gate_dims: int) -> Box:
-    """Env bounds scaled about their centre; a residual layer's range is centred on zero."""
+    """Env bounds scaled about their centre (a residual layer's centred on zero), then any gate
+    dimensions in [-1, 1], then, for a layer that may repeat, the repeat count in [1, max_repeat]."""
     low, high = env_space.low.astype(np.float64), env_space.high.astype(np.float64)
     half = (high - low) / 2 * recipe.layers[i].action_scale
     residual = i > 0 and COMBINERS.get(recipe.combiner_kind(i - 1)).gate_dims == 0
@@ -54,6 +60,9 @@ def _layer_action_space(recipe: Recipe, i: int, env_space: Box, gate_dims: int) 
     low, high = mid - half, mid + half
     if gate_dims:
         low, high = np.append(low, -np.ones(gate_dims)), np.append(high, np.ones(gate_dims))
+    max_repeat = recipe.layers[i].max_repeat
+    if max_repeat > 1:
+        low, high = np.append(low, 1.0), np.append(high, float(max_repeat))
     return Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
 
 
@@ -96,6 +105,7 @@ class Stack:
                 action_penalty=cfg.action_penalty,
                 defer_reward_scale=cfg.defer_reward_scale,
                 delay=cfg.delay,
+                max_repeat=cfg.max_repeat,
             ))
         wanted = names if active is None else list(active)
         unknown = [n for n in wanted if n not in names]
@@ -107,6 +117,7 @@ class Stack:
         self.held = [np.zeros(layer.action_space.shape, np.float32) for layer in self.layers]
         # outputs chosen but not yet in effect, oldest first (the real-time setting)
         self.inflight = [np.zeros((layer.delay, *layer.action_space.shape), np.float32) for layer in self.layers]
+        self.resume_at = [0] * len(self.layers)  # the first step a repeating layer may decide again
         self.t = 0
 
     def _observation_space(self, obs_space: Box, layer: Layer) -> Box:
@@ -123,6 +134,7 @@ class Stack:
     def reset(self) -> None:
         """Start an episode: step 0, every held output zero."""
         self.t = 0
+        self.resume_at = [0] * len(self.layers)
         for out in (*self.held, *self.inflight):
             out.fill(0.0)
 
@@ -138,12 +150,13 @@ class Stack:
         # The fastest present layer has no one below: its output always just joins the sum.
         if position == len(self.active) - 1:
             return Route.ADD
-        return self.layers[i].combiner.route(self.held[i])
+        layer = self.layers[i]
+        return layer.combiner.route(self.held[i][: self.action_dim + layer.combiner.gate_dims])
 
     def next_due(self, start: int = 0) -> int | None:
         """The first present layer with index >= start that decides at the current step, if any."""
         for position, i in enumerate(self.active):
-            if i >= start and self.t % self.layers[i].period == 0:
+            if i >= start and self.t % self.layers[i].period == 0 and self.t >= self.resume_at[i]:
                 return i
             if self._route(position, i) is Route.COMMIT:
                 return None
@@ -152,8 +165,10 @@ class Stack:
     def hold(self, i: int, output: np.ndarray) -> None:
         """Layer i decided `output`; it is held until its next decision, or, with a delay of d,
         takes effect d decisions later while the oldest output in flight takes effect now."""
-        space = self.layers[i].action_space
+        layer = self.layers[i]
+        space = layer.action_space
         output = np.clip(np.asarray(output, np.float32).reshape(space.shape), space.low, space.high)
+        self.resume_at[i] = self.t + layer.repeats(output) * layer.period
         queue = self.inflight[i]
         if len(queue):
             output, queue[:-1], queue[-1] = queue[0].copy(), queue[1:].copy(), output

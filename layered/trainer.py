@@ -64,21 +64,24 @@ def load_learners(recipe: Recipe, run_dir: Path) -> dict[str, Learner]:
 
 
 class CsvLog:
-    """Rows appended to a CSV file, flushed at once; the header is that of the first row."""
+    """Rows appended to a CSV file, flushed at once; the header is `fields` or the first row's keys."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, fields: list[str] | None = None) -> None:
         self.path = path
-        self._fields: list[str] | None = None
+        self._fields = fields
+        if fields is not None:
+            self._write_header()
+
+    def _write_header(self) -> None:
+        with self.path.open("w", newline="") as f:
+            csv.DictWriter(f, fieldnames=self._fields or []).writeheader()
 
     def write(self, row: dict[str, Any]) -> None:
-        new = self._fields is None
-        if new:
+        if self._fields is None:
             self._fields = list(row)
+            self._write_header()
         with self.path.open("a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self._fields, extrasaction="ignore", restval="")
-            if new:
-                writer.writeheader()
-            writer.writerow(row)
+            csv.DictWriter(f, fieldnames=self._fields, extrasaction="ignore", restval="").writerow(row)
 
 
 def train(
@@ -92,7 +95,8 @@ def train(
     probe = make_aec_env(recipe)
     learners = build_learners(recipe, probe)
     probe.close()
-    metrics, episodes = CsvLog(out / "metrics.csv"), CsvLog(out / "episodes.csv")
+    metrics = CsvLog(out / "metrics.csv")
+    episodes = CsvLog(out / "episodes.csv", ["phase", "step", "return", "length"])
     results = []
     for p, phase in enumerate(phases_of(recipe)):
         budget = min(phase.steps or recipe.train.steps_per_phase, max_steps or np.iinfo(np.int64).max)
@@ -140,7 +144,8 @@ def run_phase(
             if learns and name in pending:
                 gamma = learner.config.gamma
                 discount = gamma ** info["elapsed"] if gamma_mode == "step" else gamma
-                learner.observe(Transition(*pending[name], reward, obs, terminated, discount))
+                path = tuple(info.get("path", ()))
+                learner.observe(Transition(*pending[name], reward, obs, terminated, discount, path))
             if terminated or truncated:
                 env.step(None)
                 continue

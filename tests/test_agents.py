@@ -81,3 +81,18 @@ def test_same_seed_same_trajectory():
     a2, d2 = rollout(5)
     assert np.array_equal(a1, a2) and d1 == d2
     assert not np.array_equal(a1, rollout(6)[0])
+
+
+def test_a_repeating_layer_gets_the_observation_and_reward_of_each_period_it_held():
+    recipe = stack_recipe([1])
+    recipe = recipe.model_copy(update={"layers": [recipe.layers[0].model_copy(update={"max_repeat": 4})]})
+    env = make_aec_env(recipe, seed=2)
+    plain = gym.make("Pendulum-v1")
+    plain.reset(seed=2)
+    env.step(np.array([1.0, 3.0], np.float32))  # hold 1.0 for three steps
+    expected = [plain.step(np.array([1.0], np.float32))[:2] for _ in range(3)]
+    _, reward, _, _, info = env.last()
+    assert info["elapsed"] == 3 and len(info["path"]) == 3
+    for (o, r), (eo, er) in zip(info["path"], expected, strict=True):
+        assert o == pytest.approx(eo, rel=1e-5) and r == pytest.approx(er)
+    assert reward == pytest.approx(sum(r for _, r in expected))

@@ -199,3 +199,18 @@ def test_a_delay_of_two_decisions_queues_in_order():
     assert stack.observation(0, np.zeros(3))[3:] == pytest.approx([0.3, 0.4])
     stack.reset()
     assert stack.observation(0, np.zeros(3))[3:] == pytest.approx([0.0, 0.0])
+
+
+def test_a_repeating_layer_holds_its_output_for_the_chosen_number_of_periods():
+    recipe = stack_recipe([2, 1])
+    slow = recipe.layers[0].model_copy(update={"max_repeat": 3})
+    stack = Stack(recipe.model_copy(update={"layers": [slow, recipe.layers[1]]}), OBS, ACT)
+    assert stack.layers[0].action_space == Box(np.array([-2, 1], np.float32), np.array([2, 3], np.float32))
+    schedule = []
+    for t in range(10):
+        decided = decisions_at(stack, [np.array([0.5, 2.6 if t == 0 else 1.2]), np.array([0.1])])
+        schedule.append(decided)
+        stack.tick()
+    # 2.6 rounds to 3 periods of 2 steps: the slow layer decides again at t=6, then every period
+    assert [0 in d for d in schedule] == [True, False, False, False, False, False, True, False, True, False]
+    assert stack.compose().action == pytest.approx([0.6])  # the count is not part of the action

@@ -83,3 +83,25 @@ def test_learns_the_best_action_of_a_one_step_problem():
     for _ in range(600):
         learner.update()
     assert learner.act(obs, False)[0] == pytest.approx(0.5, abs=0.1)
+
+
+def test_temporl_learns_from_every_period_and_every_partial_repetition():
+    from layered.learners.temporl import TempoRL, TempoRLConfig
+
+    space = Box(np.array([-2.0, 1.0], np.float32), np.array([2.0, 4.0], np.float32))
+    learner = TempoRL(OBS, space, TempoRLConfig(hidden=(16,), batch_size=4, gamma=0.5), seed=0)
+    states = [np.full(3, k, np.float32) for k in range(4)]
+    path = tuple((states[k + 1], float(k + 1)) for k in range(3))  # rewards 1, 2, 3
+    learner.observe(Transition(states[0], np.array([0.3, 3.0], np.float32), 6.0, states[3], True, 0.5, path))
+    assert len(learner.td3.buffer) == 3 and len(learner.skip_buffer) == 6  # 3 periods; 3 + 2 + 1 segments
+    sb = learner.skip_buffer
+    rows = {(int(sb._obs[i, 0]), int(sb._action[i, 1])): (float(sb._reward[i, 0]), float(sb._discount[i, 0]),
+                                                          float(sb._not_done[i, 0])) for i in range(6)}
+    assert rows[(0, 3)] == (1 + 0.5 * 2 + 0.25 * 3, 0.125, 0.0)  # the whole skip ends the episode
+    assert rows[(0, 2)] == (1 + 0.5 * 2, 0.25, 1.0)
+    assert rows[(1, 1)] == (2.0, 0.5, 1.0)
+    assert rows[(2, 1)] == (3.0, 0.5, 0.0)
+    assert float(learner.td3.buffer._not_done[2, 0]) == 0.0 and float(learner.td3.buffer._not_done[0, 0]) == 1.0
+    action = learner.act(states[0], explore=True)
+    assert space.contains(action) and action[1] in (1, 2, 3, 4)
+    assert learner.update() is not None

@@ -12,6 +12,7 @@ from layered import load_recipe, make_aec_env
 from layered.trainer import CsvLog, build_learners, phases_of, run_phase, train
 
 RECIPES = sorted((Path(__file__).parent.parent / "recipes").rglob("*.toml"))
+PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=100", "eval.episodes=1"]
 
 
@@ -59,7 +60,7 @@ def test_explicit_phases_with_two_layers_learning_at_once(tmp_path):
 
 
 def test_same_seed_gives_the_same_run(tmp_path):
-    recipe = load_recipe(Path(RECIPES[0]).parent / "tla-c.toml", TINY)
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
     for name in ("a", "b"):
         train(recipe, tmp_path / name, max_steps=250, progress=False)
     assert (tmp_path / "a" / "metrics.csv").read_text() == (tmp_path / "b" / "metrics.csv").read_text()
@@ -72,7 +73,7 @@ def layered_cli(*args):
 
 def test_cli_train_then_eval_with_threshold(tmp_path):
     out = tmp_path / "run"
-    recipe = Path(RECIPES[0]).parent / "tla-c.toml"
+    recipe = PENDULUM / "tla-c.toml"
     proc = layered_cli("train", recipe, *TINY, "--steps", 200, "--seed", 4, "--out", out)
     assert proc.returncode == 0, proc.stderr
     assert "| phase | learns |" in proc.stdout and "phase 2: fast" in proc.stderr  # table and progress
