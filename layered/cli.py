@@ -36,6 +36,9 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--threads", type=int, help="torch threads")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
+    rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
+    rep.add_argument("runs", type=Path, nargs="+", help="run directories, or folders that hold them")
+    rep.add_argument("--out", type=Path, help="report directory (default runs/report-<time>)")
     return parser
 
 
@@ -55,7 +58,8 @@ def _train(args: argparse.Namespace) -> int:
     if out.exists() and any(out.iterdir()):
         return _fail(f"{out} already holds a run; choose another --out")
     print(f"training {args.recipe} -> {out}", file=sys.stderr)
-    train(recipe, out, max_steps=args.steps)
+    source = Path(args.recipe)
+    train(recipe, out, max_steps=args.steps, label=f"{source.parent.name}/{source.stem}")
     print((out / "results.md").read_text())
     print(f"run directory: {out} (results.json, metrics.csv, curves.png, checkpoints/)")
     return 0
@@ -92,6 +96,23 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _report(args: argparse.Namespace) -> int:
+    from layered.report import write_report
+    from layered.summary import find_runs, group
+
+    try:
+        setups = group(find_runs(args.runs))
+    except FileNotFoundError as e:
+        return _fail(str(e))
+    out = args.out or Path("runs") / f"report-{time.strftime('%Y%m%d-%H%M%S')}"
+    print(write_report(setups, out))
+    print(f"report directory: {out} (report.md, summary.csv, curves.png)")
+    return 0
+
+
+COMMANDS = {"train": _train, "eval": _eval, "report": _report}
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns 2 on bad input with one line per problem and no traceback."""
     parser = _parser()
@@ -100,10 +121,10 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     args.overrides = extra
-    if args.threads:
+    if getattr(args, "threads", None):
         torch.set_num_threads(args.threads)
     try:
-        return _train(args) if args.command == "train" else _eval(args)
+        return COMMANDS[args.command](args)
     except RecipeError as e:
         for line in e.lines:
             print(f"layered: error: {line}", file=sys.stderr)

@@ -83,3 +83,86 @@ def plot_episode(trace: Sequence[Any], layers: Sequence[str], out_png: Path, tit
         bottom.legend(loc="upper right", fontsize="small", ncols=4)
     fig.savefig(out_png, dpi=120)
     plt.close(fig)
+
+
+Metric = tuple[str, str, str]  # (results key, column name, format of mean and std)
+
+TABLE_1: list[Metric] = [("auc", "AUC", "{:.3f}"), ("return_mean", "return", "{:.1f}")]
+TABLE_2: list[Metric] = [("repetition", "action repetition", "{:.1%}"), ("decisions", "decisions", "{:.1f}")]
+TABLE_3: list[Metric] = [
+    ("auc", "AUC", "{:.3f}"), ("return_mean", "return", "{:.1f}"), ("repetition", "AR", "{:.1%}"),
+]
+
+
+def _cell(setup: Any, key: str, fmt: str) -> str:
+    mean, std = setup.stat(key)
+    if mean != mean:  # NaN: no value for this setup
+        return "n/a"
+    return f"{fmt.format(mean)} ± {fmt.format(std)}"
+
+
+def wide_table(setups: Sequence[Any], metrics: Sequence[Metric]) -> str:
+    """One row per environment, one column per (metric, method): mean ± std over seeds."""
+    methods = list(dict.fromkeys(s.method for s in setups))
+    envs = list(dict.fromkeys(s.env for s in setups))
+    head = ["environment"] + [f"{name}: {m}" for _, name, _ in metrics for m in methods]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for env in envs:
+        here = {s.method: s for s in setups if s.env == env}
+        cells = [_cell(here[m], key, fmt) if m in here else "" for key, _, fmt in metrics for m in methods]
+        lines.append("| " + " | ".join([env, *cells]) + " |")
+    return "\n".join(lines)
+
+
+def seeds_table(setups: Sequence[Any]) -> str:
+    """Which runs make up each setup: the traceability of every number in the tables."""
+    lines = ["| environment | setup | seeds | run directories |", "|---|---|---|---|"]
+    for s in setups:
+        dirs = ", ".join(str(r.path) for r in s.runs)
+        lines.append(f"| {s.env} | {s.label} | {', '.join(str(r.seed) for r in s.runs)} | {dirs} |")
+    return "\n".join(lines)
+
+
+def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
+    """Learning curves of the last phase per environment: mean over seeds with a ±1 std band."""
+    envs = list(dict.fromkeys(s.env for s in setups))
+    fig, axes = plt.subplots(1, len(envs), figsize=(5.5 * len(envs), 4), squeeze=False, constrained_layout=True)
+    for ax, env in zip(axes[0], envs, strict=True):
+        for s in (s for s in setups if s.env == env):
+            steps, mean, std = s.curve()
+            line, = ax.plot(steps, mean, label=f"{s.method} ({len(s.runs)} seeds)")
+            ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+        ax.set_title(env)
+        ax.set_xlabel("environment steps (last phase)")
+        ax.set_ylabel("evaluation return")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize="small")
+    fig.savefig(out_png, dpi=120)
+    plt.close(fig)
+
+
+def write_report(setups: Sequence[Any], out: Path) -> str:
+    """Tables 1-3 as Markdown (report.md) and CSV (summary.csv), and learning curves (curves.png)."""
+    out.mkdir(parents=True, exist_ok=True)
+    turn = [s for s in setups if not s.realtime]
+    realtime = [s for s in setups if s.realtime]
+    parts = ["# Results", "",
+             "Mean ± standard deviation over seeds of each run's final evaluation (last phase); "
+             "AUC is the normalised area under the last phase's evaluation curve.", ""]
+    if turn:
+        parts += ["## Table 1: normalised AUC and average return", "", wide_table(turn, TABLE_1), "",
+                  "## Table 2: action repetition and decisions per episode", "", wide_table(turn, TABLE_2), ""]
+    if realtime:
+        parts += ["## Table 3: real-time setting", "", wide_table(realtime, TABLE_3), ""]
+    parts += ["## Runs", "", seeds_table(setups), "", "![learning curves](curves.png)", ""]
+    text = "\n".join(parts)
+    (out / "report.md").write_text(text)
+    keys = sorted({k for s in setups for r in s.runs for k in r.final if k != "phase"})
+    with (out / "summary.csv").open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["env", "label", "method", "seeds", *(f"{k}_{stat}" for k in keys for stat in ("mean", "std"))])
+        for s in setups:
+            stats = [v for k in keys for v in s.stat(k)]
+            writer.writerow([s.env, s.label, s.method, " ".join(str(r.seed) for r in s.runs), *stats])
+    plot_setup_curves(setups, out / "curves.png")
+    return text

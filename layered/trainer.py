@@ -85,9 +85,14 @@ class CsvLog:
 
 
 def train(
-    recipe: Recipe, out_dir: str | Path, max_steps: int | None = None, progress: bool = True
+    recipe: Recipe, out_dir: str | Path, max_steps: int | None = None, progress: bool = True,
+    label: str | None = None,
 ) -> list[PhaseResult]:
-    """Train every phase of `recipe`, writing the run directory; `max_steps` caps each phase."""
+    """Train every phase of `recipe`, writing the run directory; `max_steps` caps each phase.
+
+    `label` names the setup for reports (e.g. `pendulum/tla-c`); runs of the same setup with
+    different seeds share it. It defaults to the run directory's name.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "recipe.toml").write_text(tomli_w.dumps(resolved(recipe)))
@@ -104,7 +109,7 @@ def train(
         for name in phase.learn:
             save_checkpoint(out / "checkpoints" / f"{name}.pt", name, learners[name].state_dict())
         results.append(result)
-    write_results(recipe, results, out)
+    write_results(recipe, results, out, label or out.name)
     return results
 
 
@@ -188,7 +193,7 @@ def _auc(recipe: Recipe, curve: list[tuple[int, Evaluation]]) -> float | None:
     return normalised_auc([s for s, _ in curve], [e.return_mean for _, e in curve], return_range)
 
 
-def write_results(recipe: Recipe, results: list[PhaseResult], out: Path) -> None:
+def write_results(recipe: Recipe, results: list[PhaseResult], out: Path, label: str) -> None:
     """results.json (every number of the table), results.md, and the learning-curve plot."""
     rows = [
         {
@@ -197,6 +202,7 @@ def write_results(recipe: Recipe, results: list[PhaseResult], out: Path) -> None
         }
         for r in results
     ]
-    (out / "results.json").write_text(json.dumps({"env": recipe.env.id, "phases": rows}, indent=2))
+    summary = {"env": recipe.env.id, "label": label, "seed": recipe.train.seed, "phases": rows}
+    (out / "results.json").write_text(json.dumps(summary, indent=2))
     (out / "results.md").write_text(results_table(rows) + "\n")
     plot_curves(out / "metrics.csv", out / "curves.png", title=f"{recipe.env.id}: {out.name}")

@@ -1,0 +1,106 @@
+"""Reading finished run directories and aggregating the runs of one setup over seeds."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+import tomllib
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+# The paper's methods first, in its column order; any other setup follows alphabetically.
+METHOD_ORDER = ["td3", "temporl", "tla-o", "tla-c", "td3-realtime", "tla-realtime"]
+
+
+@dataclass(frozen=True)
+class Run:
+    """One finished run: its setup, seed, final evaluation and last phase's evaluation curve."""
+
+    path: Path
+    env: str
+    label: str
+    seed: int
+    realtime: bool
+    final: dict[str, float]
+    curve: tuple[tuple[int, float], ...]
+
+    @property
+    def method(self) -> str:
+        return self.label.rsplit("/", 1)[-1]
+
+
+def load_run(path: Path) -> Run:
+    """The run in directory `path`; raises FileNotFoundError naming what is missing."""
+    results_file = path / "results.json"
+    if not results_file.exists():
+        raise FileNotFoundError(f"{path} is not a finished run (no results.json)")
+    results = json.loads(results_file.read_text())
+    recipe = tomllib.loads((path / "recipe.toml").read_text())
+    final = results["phases"][-1]
+    last_phase = str(final["phase"])
+    with (path / "metrics.csv").open() as f:
+        curve = tuple((int(r["step"]), float(r["return_mean"])) for r in csv.DictReader(f) if r["phase"] == last_phase)
+    label = results.get("label") or re.sub(r"-s\d+(-\d{8}-\d{6})?$", "", path.name)
+    return Run(
+        path=path, env=results["env"], label=label, seed=int(results.get("seed", recipe["train"]["seed"])),
+        realtime=any(layer.get("delay", 0) > 0 for layer in recipe["layers"]),
+        final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)},
+        curve=curve,
+    )
+
+
+@dataclass(frozen=True)
+class Setup:
+    """The runs of one (environment, setup label) pair, one per seed."""
+
+    env: str
+    label: str
+    runs: tuple[Run, ...]
+
+    @property
+    def method(self) -> str:
+        return self.runs[0].method
+
+    @property
+    def realtime(self) -> bool:
+        return self.runs[0].realtime
+
+    def stat(self, key: str) -> tuple[float, float]:
+        """Mean and standard deviation over seeds of a final-evaluation value (NaN if absent)."""
+        values = np.array([r.final.get(key, np.nan) for r in self.runs], np.float64)
+        return float(np.mean(values)), float(np.std(values))
+
+    def curve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Steps, mean and std over seeds of the evaluation return, on the steps all runs share."""
+        common = sorted(set.intersection(*(set(dict(r.curve)) for r in self.runs)))
+        values = np.array([[dict(r.curve)[s] for s in common] for r in self.runs], np.float64)
+        return np.array(common), values.mean(axis=0), values.std(axis=0)
+
+
+def group(runs: Iterable[Run]) -> list[Setup]:
+    """Runs grouped by (environment, label), in the paper's method order."""
+    by_key: dict[tuple[str, str], list[Run]] = {}
+    for run in runs:
+        by_key.setdefault((run.env, run.label), []).append(run)
+    setups = [Setup(env, label, tuple(sorted(rs, key=lambda r: r.seed))) for (env, label), rs in by_key.items()]
+
+    def order(s: Setup) -> tuple[str, int, str]:
+        rank = METHOD_ORDER.index(s.method) if s.method in METHOD_ORDER else len(METHOD_ORDER)
+        return (s.env, rank, s.label)
+
+    return sorted(setups, key=order)
+
+
+def find_runs(paths: Sequence[Path]) -> list[Run]:
+    """Every finished run in `paths`, each a run directory or a folder holding run directories."""
+    found: list[Run] = []
+    for path in paths:
+        dirs = [path] if (path / "results.json").exists() else sorted(p.parent for p in path.rglob("results.json"))
+        if not dirs:
+            raise FileNotFoundError(f"{path}: no finished runs (no results.json) in it")
+        found += [load_run(d) for d in dirs]
+    return found

@@ -1,0 +1,62 @@
+"""Reports: aggregation over seeds by hand, and the report command on real runs."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from layered import load_recipe
+from layered.summary import Run, Setup, find_runs, group
+from layered.trainer import train
+
+PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
+TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=100", "eval.episodes=1"]
+
+
+def run(label, seed, ret, auc, curve, env="Pendulum-v1", realtime=False):
+    final = {"return_mean": ret, "auc": auc, "repetition": 0.5, "decisions": 200.0}
+    return Run(Path(f"/r/{label}-{seed}"), env, label, seed, realtime, final, tuple(curve))
+
+
+def test_setup_statistics_are_mean_and_population_std_over_seeds():
+    s = Setup("Pendulum-v1", "pendulum/td3", (run("pendulum/td3", 0, -100.0, 0.5, [(0, -1000), (10, -100)]),
+                                              run("pendulum/td3", 1, -300.0, 0.7, [(0, -1200), (10, -300), (20, 0)])))
+    assert s.stat("return_mean") == pytest.approx((-200.0, 100.0))
+    assert s.stat("auc") == pytest.approx((0.6, 0.1))
+    steps, mean, std = s.curve()  # only the steps both runs evaluated
+    assert list(steps) == [0, 10] and list(mean) == [-1100, -200] and list(std) == [100, 100]
+    assert s.method == "td3"
+
+
+def test_grouping_orders_methods_as_the_paper():
+    runs = [run("p/tla-c", 0, 0, 0, []), run("p/td3", 0, 0, 0, []), run("p/tla-o", 1, 0, 0, []),
+            run("p/tla-c", 1, 0, 0, []), run("p/temporl", 0, 0, 0, [])]
+    setups = group(runs)
+    assert [s.method for s in setups] == ["td3", "temporl", "tla-o", "tla-c"]
+    assert [len(s.runs) for s in setups] == [1, 1, 1, 2]
+
+
+def test_report_command_on_real_runs(tmp_path):
+    for name, seed in (("td3", 0), ("td3", 1), ("tla-c", 0)):
+        recipe = load_recipe(PENDULUM / f"{name}.toml", [*TINY, f"train.seed={seed}"])
+        train(recipe, tmp_path / "runs" / f"{name}-s{seed}", max_steps=200, progress=False, label=f"pendulum/{name}")
+    finals = {p.name: json.loads((p / "results.json").read_text())["phases"][-1]
+              for p in (tmp_path / "runs").iterdir()}
+    proc = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(tmp_path / "runs"),
+                           "--out", str(tmp_path / "report")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    returns = [finals["td3-s0"]["return_mean"], finals["td3-s1"]["return_mean"]]
+    mean, std = sum(returns) / 2, abs(returns[0] - returns[1]) / 2
+    assert f"{mean:.1f} ± {std:.1f}" in proc.stdout
+    assert f"{finals['tla-c-s0']['repetition']:.1%} ± 0.0%" in proc.stdout
+    assert (tmp_path / "report" / "curves.png").stat().st_size > 0
+    assert len(find_runs([tmp_path / "runs"])) == 3
+    assert "pendulum/td3,td3,0 1," in (tmp_path / "report" / "summary.csv").read_text()
+
+
+def test_report_of_nothing_is_a_clear_error(tmp_path):
+    command = [sys.executable, "-m", "layered.cli", "report", str(tmp_path)]
+    proc = subprocess.run(command, capture_output=True, text=True)
+    assert proc.returncode == 2 and "no finished runs" in proc.stderr and "Traceback" not in proc.stderr
