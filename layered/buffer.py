@@ -34,6 +34,8 @@ class Batch(NamedTuple):
 class ReplayBuffer:
     """Ring buffer that overwrites its oldest transitions once full."""
 
+    FIELDS = ("obs", "action", "reward", "next_obs", "not_done", "discount")
+
     def __init__(self, obs_dim: int, action_dim: int, capacity: int) -> None:
         self.capacity = capacity
         self.size = 0
@@ -65,3 +67,14 @@ class ReplayBuffer:
 
     def __len__(self) -> int:
         return self.size
+
+    def state_dict(self) -> dict[str, torch.Tensor | int]:
+        """The stored transitions as tensors, for resuming a run."""
+        stored = {key: torch.from_numpy(getattr(self, f"_{key}")[: self.size].copy()) for key in self.FIELDS}
+        return {"size": self.size, "next": self._next, **stored}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor | int]) -> None:
+        """Restore what `state_dict` returned."""
+        self.size, self._next = int(state["size"]), int(state["next"])
+        for key in self.FIELDS:
+            getattr(self, f"_{key}")[: self.size] = state[key].numpy()

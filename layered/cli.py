@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -36,6 +37,16 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--threads", type=int, help="torch threads")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
+    sw = sub.add_parser(
+        "sweep", help="train every recipe with several seeds, in parallel processes",
+        usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--out DIR] [--steps N]",
+        epilog="finished runs are skipped and stopped ones resume; then: layered report DIR",
+    )
+    sw.add_argument("recipes", nargs="+", metavar="RECIPE", help="recipe files (and key=value overrides)")
+    sw.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
+    sw.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel processes (default: cores)")
+    sw.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep directory (default runs/sweep)")
+    sw.add_argument("--steps", type=int, help="cap every training phase at N environment steps")
     rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
     rep.add_argument("runs", type=Path, nargs="+", help="run directories, or folders that hold them")
     rep.add_argument("--out", type=Path, help="report directory (default runs/report-<time>)")
@@ -110,14 +121,29 @@ def _report(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"train": _train, "eval": _eval, "report": _report}
+def _sweep(args: argparse.Namespace) -> int:
+    from layered.sweep import plan, run_local
+
+    overrides = [a for a in args.recipes if "=" in a] + args.overrides
+    recipes = [a for a in args.recipes if "=" not in a]
+    if args.seeds <= 0 or args.jobs <= 0 or (args.steps is not None and args.steps <= 0):
+        return _fail("--seeds, --jobs and --steps must be positive")
+    jobs = plan(recipes, args.seeds, args.out, overrides, args.steps)
+    outcomes = run_local(jobs, args.jobs)
+    failed = [o for o in outcomes if o.status == "failed"]
+    print(f"{len(outcomes) - len(failed)} of {len(jobs)} runs finished in {args.out}; "
+          f"tables and figures: layered report {args.out}")
+    return 1 if failed else 0
+
+
+COMMANDS = {"train": _train, "eval": _eval, "sweep": _sweep, "report": _report}
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns 2 on bad input with one line per problem and no traceback."""
     parser = _parser()
     args, extra = parser.parse_known_args(argv)
-    unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command != "train"]
+    unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command not in ("train", "sweep")]
     if unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     args.overrides = extra

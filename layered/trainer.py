@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from layered.agents import LayeredEnv, make_aec_env
 from layered.buffer import Transition
-from layered.checkpoint import load_checkpoint, save_checkpoint
+from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from layered.envs import env_info
 from layered.evaluate import evaluate
 from layered.learners import LEARNERS, Learner
@@ -64,13 +64,24 @@ def load_learners(recipe: Recipe, run_dir: Path) -> dict[str, Learner]:
 
 
 class CsvLog:
-    """Rows appended to a CSV file, flushed at once; the header is `fields` or the first row's keys."""
+    """Rows appended to a CSV file, flushed at once; the header is `fields` or the first row's keys.
 
-    def __init__(self, path: Path, fields: list[str] | None = None) -> None:
+    With `keep_phases_below = k` an existing file keeps its rows of phases before k (resuming).
+    """
+
+    def __init__(self, path: Path, fields: list[str] | None = None, keep_phases_below: int = 0) -> None:
         self.path = path
         self._fields = fields
-        if fields is not None:
+        kept: list[dict[str, str]] = []
+        if keep_phases_below and path.exists():
+            with path.open() as f:
+                reader = csv.DictReader(f)
+                self._fields = list(reader.fieldnames or []) or fields
+                kept = [row for row in reader if int(row["phase"]) < keep_phases_below]
+        if self._fields is not None:
             self._write_header()
+            for row in kept:
+                self.write(row)
 
     def _write_header(self) -> None:
         with self.path.open("w", newline="") as f:
@@ -86,12 +97,15 @@ class CsvLog:
 
 def train(
     recipe: Recipe, out_dir: str | Path, max_steps: int | None = None, progress: bool = True,
-    label: str | None = None,
-) -> list[PhaseResult]:
+    label: str | None = None, resume: bool = False,
+) -> list[dict[str, Any]]:
     """Train every phase of `recipe`, writing the run directory; `max_steps` caps each phase.
 
     `label` names the setup for reports (e.g. `pendulum/tla-c`); runs of the same setup with
-    different seeds share it. It defaults to the run directory's name.
+    different seeds share it. It defaults to the run directory's name. After each phase the
+    whole training state is saved; with `resume`, a run that was stopped continues from its
+    last finished phase and ends exactly as if it had never stopped.
+    Returns the results row of each phase, as in results.json.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -100,17 +114,37 @@ def train(
     probe = make_aec_env(recipe)
     learners = build_learners(recipe, probe)
     probe.close()
-    metrics = CsvLog(out / "metrics.csv")
-    episodes = CsvLog(out / "episodes.csv", ["phase", "step", "return", "length"])
-    results = []
+    run_state = out / "checkpoints" / "run.pt"
+    rows: list[dict[str, Any]] = []
+    if resume and run_state.exists():
+        rows = _restore(run_state, learners, max_steps)
+    metrics = CsvLog(out / "metrics.csv", keep_phases_below=len(rows))
+    episodes = CsvLog(out / "episodes.csv", ["phase", "step", "return", "length"], keep_phases_below=len(rows))
     for p, phase in enumerate(phases_of(recipe)):
+        if p < len(rows):
+            continue
         budget = min(phase.steps or recipe.train.steps_per_phase, max_steps or np.iinfo(np.int64).max)
         result = run_phase(recipe, p, phase, budget, learners, metrics, episodes, progress)
         for name in phase.learn:
             save_checkpoint(out / "checkpoints" / f"{name}.pt", name, learners[name].state_dict())
-        results.append(result)
-    write_results(recipe, results, out, label or out.name)
-    return results
+        rows.append(phase_row(result))
+        save_checkpoint(run_state, "run", {
+            "rows": json.dumps(rows), "max_steps": max_steps, "torch_rng": torch.get_rng_state(),
+            "learners": {name: learner.resume_state() for name, learner in learners.items()},
+        })
+    write_results(recipe, rows, out, label or out.name)
+    return rows
+
+
+def _restore(run_state: Path, learners: dict[str, Learner], max_steps: int | None) -> list[dict[str, Any]]:
+    """Load the saved training state into `learners`; the finished phases' results rows."""
+    state = load_checkpoint(run_state, "run")
+    if state["max_steps"] != max_steps:
+        raise CheckpointError(f"{run_state}: the run was started with --steps {state['max_steps']}, not {max_steps}")
+    for name, learner in learners.items():
+        learner.load_resume_state(state["learners"][name])
+    torch.set_rng_state(state["torch_rng"])
+    return list(json.loads(state["rows"]))
 
 
 def run_phase(
@@ -193,15 +227,16 @@ def _auc(recipe: Recipe, curve: list[tuple[int, Evaluation]]) -> float | None:
     return normalised_auc([s for s, _ in curve], [e.return_mean for _, e in curve], return_range)
 
 
-def write_results(recipe: Recipe, results: list[PhaseResult], out: Path, label: str) -> None:
+def phase_row(r: PhaseResult) -> dict[str, Any]:
+    """A phase's results as one flat row of results.json."""
+    return {
+        "phase": r.index, "learn": list(r.phase.learn), "active": list(r.phase.active), "steps": r.steps,
+        "auc": r.auc, **r.final.row(),
+    }
+
+
+def write_results(recipe: Recipe, rows: list[dict[str, Any]], out: Path, label: str) -> None:
     """results.json (every number of the table), results.md, and the learning-curve plot."""
-    rows = [
-        {
-            "phase": r.index, "learn": list(r.phase.learn), "active": list(r.phase.active), "steps": r.steps,
-            "auc": r.auc, **r.final.row(),
-        }
-        for r in results
-    ]
     summary = {"env": recipe.env.id, "label": label, "seed": recipe.train.seed, "phases": rows}
     (out / "results.json").write_text(json.dumps(summary, indent=2))
     (out / "results.md").write_text(results_table(rows) + "\n")

@@ -102,3 +102,27 @@ def test_time_limit_truncation_bootstraps_and_termination_does_not(tmp_path):
         not_done = buffer._not_done[: len(buffer)]
         assert len(buffer) >= 400  # Pendulum: two truncated episodes stored whole
         assert bool((not_done == 0).any()) is terminates
+
+
+def test_a_stopped_run_resumes_to_exactly_the_result_of_an_uninterrupted_one(tmp_path, monkeypatch):
+    import layered.trainer as trainer
+
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
+    train(recipe, tmp_path / "whole", max_steps=250, progress=False, label="x")
+    original = trainer.run_phase
+
+    def stop_in_second_phase(recipe, index, *args, **kwargs):
+        if index == 1:
+            original(recipe, index, *args, **kwargs)  # write some of its rows, then die
+            raise KeyboardInterrupt
+        return original(recipe, index, *args, **kwargs)
+
+    monkeypatch.setattr(trainer, "run_phase", stop_in_second_phase)
+    with pytest.raises(KeyboardInterrupt):
+        train(recipe, tmp_path / "stopped", max_steps=250, progress=False, label="x")
+    monkeypatch.setattr(trainer, "run_phase", original)
+    train(recipe, tmp_path / "stopped", max_steps=250, progress=False, label="x", resume=True)
+    for name in ("metrics.csv", "episodes.csv", "results.json"):
+        assert (tmp_path / "stopped" / name).read_text() == (tmp_path / "whole" / name).read_text(), name
+    with pytest.raises(Exception, match="--steps 250, not 300"):
+        train(recipe, tmp_path / "stopped", max_steps=300, progress=False, resume=True)

@@ -69,5 +69,14 @@ class Learner(ABC):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what `state_dict` returned."""
 
+    def resume_state(self) -> dict[str, Any]:
+        """Everything needed to continue training exactly: `state_dict`, replay and random state."""
+        return {"policy": self.state_dict(), "rng": self.rng.bit_generator.state}
+
+    def load_resume_state(self, state: dict[str, Any]) -> None:
+        """Restore what `resume_state` returned."""
+        self.load_state_dict(state["policy"])
+        self.rng.bit_generator.state = state["rng"]
+
 
 LEARNERS: Registry[type[Learner]] = Registry("learner")

@@ -160,6 +160,13 @@ class TD3(Learner):
             "torch_rng": self.torch_rng.get_state(),
         }
 
+    def resume_state(self) -> dict[str, Any]:
+        return {**super().resume_state(), "buffer": self.buffer.state_dict()}
+
+    def load_resume_state(self, state: dict[str, Any]) -> None:
+        super().load_resume_state(state)
+        self.buffer.load_state_dict(state["buffer"])
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])

@@ -106,6 +106,14 @@ class TempoRL(Learner):
             "td3": self.td3.state_dict(), "skip_q": self.skip_q.state_dict(), "skip_opt": self.skip_opt.state_dict(),
         }
 
+    def resume_state(self) -> dict[str, Any]:
+        return {**super().resume_state(), "td3": self.td3.resume_state(), "skip_buffer": self.skip_buffer.state_dict()}
+
+    def load_resume_state(self, state: dict[str, Any]) -> None:
+        super().load_resume_state(state)
+        self.td3.load_resume_state(state["td3"])
+        self.skip_buffer.load_state_dict(state["skip_buffer"])
+
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.td3.load_state_dict(state["td3"])
         self.skip_q.load_state_dict(state["skip_q"])

@@ -1,0 +1,109 @@
+"""Experiments over recipes and seeds: every (recipe, seed) pair in its own run directory.
+
+Jobs run in parallel processes with one torch thread each. A finished run (results.json) is
+skipped; a stopped one resumes from its last finished phase.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+import sys
+import tomllib
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+from tqdm import tqdm
+
+from layered.recipe import RecipeError, load_recipe, resolved
+
+
+@dataclass(frozen=True)
+class Job:
+    """One training run of a sweep."""
+
+    recipe: dict[str, Any]  # resolved, seed included
+    out: Path
+    label: str
+    max_steps: int | None
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What became of a job."""
+
+    job: Job
+    status: str  # "done", "skipped" (already finished) or "failed"
+    detail: str
+
+
+def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequence[str] = (),
+         max_steps: int | None = None) -> list[Job]:
+    """The jobs of a sweep; every recipe is validated first, so a bad one stops it before any run.
+
+    Run directories are `out/<recipe folder>/<recipe name>/seed<k>`.
+    """
+    jobs = []
+    for source in recipes:
+        path = Path(source)
+        label = f"{path.parent.name}/{path.stem}"
+        for seed in range(seeds):
+            recipe = load_recipe(path, [*overrides, f"train.seed={seed}"])
+            run_dir = out / path.parent.name / path.stem / f"seed{seed}"
+            job = Job(resolved(recipe), run_dir, label, max_steps)
+            _check_same_recipe(job)
+            jobs.append(job)
+    return jobs
+
+
+def _check_same_recipe(job: Job) -> None:
+    """A run directory from an earlier sweep must hold the same recipe, or resuming would mix two."""
+    existing = job.out / "recipe.toml"
+    if existing.exists() and tomllib.loads(existing.read_text()) != tomllib.loads(tomli_w.dumps(job.recipe)):
+        raise RecipeError(str(existing), [("", "this run directory holds a different recipe; use another --out")])
+
+
+def run_job(job: Job) -> Outcome:
+    """Train one job in this process (one torch thread), its output going to the run's train.log."""
+    import torch
+
+    from layered.trainer import train
+
+    if (job.out / "results.json").exists():
+        return Outcome(job, "skipped", "already finished")
+    torch.set_num_threads(1)
+    job.out.mkdir(parents=True, exist_ok=True)
+    with (job.out / "train.log").open("a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
+        try:
+            rows = train(load_recipe(job.recipe), job.out, max_steps=job.max_steps, progress=True,
+                         label=job.label, resume=True)
+        except Exception as e:  # reported per job; the sweep goes on with the others
+            print(f"failed: {e.__class__.__name__}: {e}", file=log)
+            return Outcome(job, "failed", f"{e.__class__.__name__}: {e} (see {job.out / 'train.log'})")
+    final = rows[-1]
+    return Outcome(job, "done", f"return {final['return_mean']:.1f}, repetition {final['repetition']:.1%}")
+
+
+def run_local(jobs: Sequence[Job], workers: int) -> list[Outcome]:
+    """Run the jobs in `workers` processes, showing progress over jobs."""
+    outcomes = []
+    bar = tqdm(total=len(jobs), desc="sweep", unit="run", file=sys.stderr)
+    context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state forked
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_one_thread) as pool:
+        futures = [pool.submit(run_job, job) for job in jobs]
+        for future in as_completed(futures):
+            outcome = future.result()
+            outcomes.append(outcome)
+            bar.update()
+            bar.write(f"{outcome.status:>7}  {outcome.job.out}: {outcome.detail}")
+    bar.close()
+    return outcomes
+
+
+def _one_thread() -> None:
+    os.environ["OMP_NUM_THREADS"] = "1"

@@ -1,0 +1,39 @@
+"""Sweeps: every (recipe, seed) pair runs once in its own directory; finished runs are skipped."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
+TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=100", "eval.episodes=1"]
+
+
+def sweep(*args):
+    command = [sys.executable, "-m", "layered.cli", "sweep", *map(str, args)]
+    return subprocess.run(command, capture_output=True, text=True)
+
+
+def test_sweep_runs_each_pair_in_parallel_then_skips_finished_runs(tmp_path):
+    out = tmp_path / "sw"
+    recipes = (PENDULUM / "td3.toml", PENDULUM / "tla-o.toml")
+    args = (*recipes, *TINY, "--seeds", 2, "--jobs", 2, "--steps", 150, "--out", out)
+    proc = sweep(*args)
+    assert proc.returncode == 0, proc.stderr
+    runs = sorted(p.parent.relative_to(out).as_posix() for p in out.rglob("results.json"))
+    assert runs == ["pendulum/td3/seed0", "pendulum/td3/seed1", "pendulum/tla-o/seed0", "pendulum/tla-o/seed1"]
+    assert "4 of 4 runs finished" in proc.stdout
+    seeds = {(out / r / "recipe.toml").read_text().count("seed = 1") for r in runs}
+    assert seeds == {0, 1}
+    before = (out / "pendulum/tla-o/seed1/metrics.csv").read_text()
+    again = sweep(*args)
+    assert again.returncode == 0 and again.stdout.count("skipped") == 4
+    assert (out / "pendulum/tla-o/seed1/metrics.csv").read_text() == before
+
+
+def test_sweep_refuses_bad_recipes_and_foreign_run_directories(tmp_path):
+    out = tmp_path / "sw"
+    proc = sweep(PENDULUM / "td3.toml", "train.warmup=-1", "--out", out)
+    assert proc.returncode == 2 and "train.warmup" in proc.stderr and not out.exists()
+    assert sweep(PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 100, "--out", out).returncode == 0
+    proc = sweep(PENDULUM / "td3.toml", *TINY, "learner.lr=1e-3", "--seeds", 1, "--out", out)
+    assert proc.returncode == 2 and "holds a different recipe" in proc.stderr
