@@ -7,7 +7,6 @@ that decision spanned. This env is the reference semantics the trainer drives di
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -16,18 +15,9 @@ from gymnasium.spaces import Box
 from pettingzoo import AECEnv
 
 from layered.envs import make_env
+from layered.metrics import StepRecord
 from layered.recipe import Recipe
 from layered.stack import Stack
-
-
-@dataclass(frozen=True)
-class StepRecord:
-    """One base step as executed: the action, which layers decided, and which changed the action."""
-
-    action: np.ndarray
-    reward: float
-    decided: tuple[str, ...]  # layers whose network was evaluated at this step
-    acted: tuple[str, ...]  # layers whose contribution to the action was non-zero
 
 
 class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):

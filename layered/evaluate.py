@@ -17,11 +17,7 @@ def run_episode(env: LayeredEnv, learners: Mapping[str, Learner], seed: int | No
     for name in env.agent_iter():
         obs, _, terminated, truncated, _ = env.last()
         env.step(None if terminated or truncated else learners[name].act(obs, explore=False))
-    trace = env.trace
-    return measure_episode(
-        [s.action for s in trace], [s.reward for s in trace], [s.decided for s in trace],
-        [s.acted for s in trace], env.possible_agents,
-    )
+    return measure_episode(env.trace, {name: learners[name].act_macs() for name in env.possible_agents})
 
 
 def evaluate(

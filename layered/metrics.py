@@ -8,12 +8,29 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+@dataclass(frozen=True)
+class StepRecord:
+    """One base step as executed: the action, which layers decided, and which changed the action."""
+
+    action: np.ndarray
+    reward: float
+    decided: tuple[str, ...]  # layers whose network was evaluated at this step
+    acted: tuple[str, ...]  # layers whose contribution to the action was non-zero
+
+
 def action_repetition(actions: Sequence[np.ndarray]) -> float:
     """Share of steps whose executed action equals the previous step's exactly (the first never does)."""
     if not actions:
         return 0.0
     repeats = sum(bool(np.array_equal(a, b)) for a, b in zip(actions[1:], actions[:-1], strict=True))
     return repeats / len(actions)
+
+
+def jerk(actions: Sequence[np.ndarray]) -> float:
+    """Mean absolute change of the executed action between consecutive steps, over steps and dimensions."""
+    if len(actions) < 2:
+        return 0.0
+    return float(np.mean(np.abs(np.diff(np.asarray(actions, np.float64), axis=0))))
 
 
 def normalised_auc(steps: Sequence[float], returns: Sequence[float], return_range: tuple[float, float]) -> float:
@@ -29,28 +46,30 @@ def normalised_auc(steps: Sequence[float], returns: Sequence[float], return_rang
 
 @dataclass(frozen=True)
 class EpisodeMeasures:
-    """One episode's return, length, action repetition, decisions and per-layer activity."""
+    """One episode's return, length, action repetition, jerk, decisions, compute and per-layer activity."""
 
     ret: float
     steps: int
     repetition: float
+    jerk: float
     decisions: int  # steps at which any layer's network was evaluated
+    compute: int  # multiply-accumulates of every network evaluation
     decided: dict[str, int] = field(default_factory=dict)  # per layer: steps it was evaluated
     acted: dict[str, int] = field(default_factory=dict)  # per layer: steps its contribution was non-zero
 
 
-def measure_episode(
-    actions: Sequence[np.ndarray], rewards: Sequence[float], decided: Sequence[Sequence[str]],
-    acted: Sequence[Sequence[str]], layers: Sequence[str],
-) -> EpisodeMeasures:
-    """Measures of one episode from its per-step executed actions, rewards and layer activity."""
+def measure_episode(trace: Sequence[StepRecord], macs: dict[str, int]) -> EpisodeMeasures:
+    """Measures of one episode from its steps; `macs` is each layer's cost of one decision."""
+    actions = [s.action for s in trace]
     return EpisodeMeasures(
-        ret=float(np.sum(rewards)),
-        steps=len(actions),
+        ret=float(sum(s.reward for s in trace)),
+        steps=len(trace),
         repetition=action_repetition(actions),
-        decisions=sum(1 for d in decided if d),
-        decided={n: sum(n in d for d in decided) for n in layers},
-        acted={n: sum(n in a for a in acted) for n in layers},
+        jerk=jerk(actions),
+        decisions=sum(1 for s in trace if s.decided),
+        compute=sum(macs[n] for s in trace for n in s.decided),
+        decided={n: sum(n in s.decided for s in trace) for n in macs},
+        acted={n: sum(n in s.acted for s in trace) for n in macs},
     )
 
 
@@ -61,7 +80,9 @@ class Evaluation:
     return_mean: float
     return_std: float
     repetition: float
+    jerk: float
     decisions: float
+    compute: float
     steps: float
     decided: dict[str, float]
     acted: dict[str, float]
@@ -70,7 +91,7 @@ class Evaluation:
         """Flat columns for a CSV row."""
         out = {
             "return_mean": self.return_mean, "return_std": self.return_std, "repetition": self.repetition,
-            "decisions": self.decisions, "episode_steps": self.steps,
+            "jerk": self.jerk, "decisions": self.decisions, "compute": self.compute, "episode_steps": self.steps,
         }
         out |= {f"decided_{n}": v for n, v in self.decided.items()}
         out |= {f"acted_{n}": v for n, v in self.acted.items()}
@@ -86,7 +107,9 @@ def summarise(episodes: Sequence[EpisodeMeasures]) -> Evaluation:
         return_mean=float(returns.mean()),
         return_std=float(returns.std()),
         repetition=float(np.mean([e.repetition for e in episodes])),
+        jerk=float(np.mean([e.jerk for e in episodes])),
         decisions=float(np.mean([e.decisions for e in episodes])),
+        compute=float(np.mean([e.compute for e in episodes])),
         steps=float(np.mean([e.steps for e in episodes])),
         decided={n: sum(e.decided[n] for e in episodes) / total for n in names},
         acted={n: sum(e.acted[n] for e in episodes) / total for n in names},

@@ -17,16 +17,21 @@ def _activity(row: dict[str, Any], prefix: str) -> str:
     return ", ".join(f"{k[len(prefix):]} {100 * v:.0f}%" for k, v in row.items() if k.startswith(prefix))
 
 
+def _macs(value: float) -> str:
+    return f"{value / 1e6:.2f} M MACs"
+
+
 def results_table(rows: Sequence[dict[str, Any]]) -> str:
     """Markdown table of per-phase (or per-evaluation) results rows as written to results.json."""
-    head = "| phase | learns | present | return | AUC | action repetition | decisions / episode | evaluated | acted |"
+    head = ("| phase | learns | present | return | AUC | action repetition | jerk | decisions / episode "
+            "| compute / episode | evaluated | acted |")
     lines = [head, "|---" * (head.count("|") - 1) + "|"]
     for r in rows:
         auc = "n/a" if r.get("auc") is None else f"{r['auc']:.3f}"
         lines.append(
             f"| {r.get('phase', '')} | {'+'.join(r.get('learn', []))} | {'+'.join(r.get('active', []))} "
             f"| {r['return_mean']:.1f} ± {r['return_std']:.1f} | {auc} | {100 * r['repetition']:.1f}% "
-            f"| {r['decisions']:.1f} of {r['episode_steps']:.0f} "
+            f"| {r['jerk']:.3f} | {r['decisions']:.1f} of {r['episode_steps']:.0f} | {_macs(r['compute'])} "
             f"| {_activity(r, 'decided_')} | {_activity(r, 'acted_')} |"
         )
     return "\n".join(lines)
@@ -89,6 +94,7 @@ Metric = tuple[str, str, str]  # (results key, column name, format of mean and s
 
 TABLE_1: list[Metric] = [("auc", "AUC", "{:.3f}"), ("return_mean", "return", "{:.1f}")]
 TABLE_2: list[Metric] = [("repetition", "action repetition", "{:.1%}"), ("decisions", "decisions", "{:.1f}")]
+EXTRA_MEASURES: list[Metric] = [("jerk", "jerk", "{:.3f}"), ("compute", "MACs / episode", "{:.3g}")]
 TABLE_3: list[Metric] = [
     ("auc", "AUC", "{:.3f}"), ("return_mean", "return", "{:.1f}"), ("repetition", "AR", "{:.1%}"),
 ]
@@ -151,7 +157,9 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
              "AUC is the normalised area under the last phase's evaluation curve.", ""]
     if turn:
         parts += ["## Table 1: normalised AUC and average return", "", wide_table(turn, TABLE_1), "",
-                  "## Table 2: action repetition and decisions per episode", "", wide_table(turn, TABLE_2), ""]
+                  "## Table 2: action repetition and decisions per episode", "", wide_table(turn, TABLE_2), "",
+                  "## Smoothness and compute: jerk (mean |a_t - a_t-1|) and multiply-accumulates per episode", "",
+                  wide_table(turn, EXTRA_MEASURES), ""]
     if realtime:
         parts += ["## Table 3: real-time setting", "", wide_table(realtime, TABLE_3), ""]
     parts += ["## Runs", "", seeds_table(setups), "", "![learning curves](curves.png)", ""]

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from layered.metrics import action_repetition, measure_episode, normalised_auc, summarise
+from layered.metrics import StepRecord, action_repetition, jerk, measure_episode, normalised_auc, summarise
 
 
 def a(*xs):
@@ -25,23 +25,34 @@ def test_normalised_auc_is_the_trapezoid_over_range_and_span():
     assert normalised_auc([7], [50], (0, 100)) == pytest.approx(0.5)
 
 
-def test_measure_episode_counts_decisions_and_activity():
-    m = measure_episode(
-        actions=[a(1.0), a(1.0), a(0.2), a(0.2)],
-        rewards=[-1.0, -2.0, -0.5, 0.0],
-        decided=[("slow", "fast"), ("fast",), (), ("fast",)],
-        acted=[("slow",), ("slow",), ("slow", "fast"), ("slow",)],
-        layers=["slow", "fast"],
+def test_jerk_is_the_mean_absolute_change_over_steps_and_dimensions():
+    assert jerk([a(0.0), a(1.0), a(1.0), a(3.0)]) == pytest.approx((1 + 0 + 2) / 3)
+    assert jerk([a(0.0, 1.0), a(2.0, 0.0)]) == pytest.approx((2 + 1) / 2)
+    assert jerk([a(5.0)]) == 0.0
+
+
+def steps(actions, rewards, decided, acted):
+    return [StepRecord(*row) for row in zip(actions, rewards, decided, acted, strict=True)]
+
+
+def test_measure_episode_counts_decisions_compute_and_activity():
+    trace = steps(
+        [a(1.0), a(1.0), a(0.2), a(0.2)], [-1.0, -2.0, -0.5, 0.0],
+        [("slow", "fast"), ("fast",), (), ("fast",)], [("slow",), ("slow",), ("slow", "fast"), ("slow",)],
     )
+    m = measure_episode(trace, {"slow": 10, "fast": 3})
     assert (m.ret, m.steps, m.repetition, m.decisions) == (-3.5, 4, 0.5, 3)
+    assert m.jerk == pytest.approx(0.8 / 3)
+    assert m.compute == 10 + 3 * 3
     assert m.decided == {"slow": 1, "fast": 3}
     assert m.acted == {"slow": 4, "fast": 1}
 
 
 def test_summarise_means_returns_and_pools_activity_over_steps():
-    e1 = measure_episode([a(0.0)] * 2, [-1.0, -1.0], [("x",), ()], [("x",), ("x",)], ["x"])
-    e2 = measure_episode([a(0.0)] * 4, [0.0] * 4, [("x",)] * 4, [(), (), (), ()], ["x"])
+    e1 = measure_episode(steps([a(0.0)] * 2, [-1.0, -1.0], [("x",), ()], [("x",), ("x",)]), {"x": 7})
+    e2 = measure_episode(steps([a(0.0)] * 4, [0.0] * 4, [("x",)] * 4, [()] * 4), {"x": 7})
     s = summarise([e1, e2])
     assert s.return_mean == pytest.approx(-1.0) and s.return_std == pytest.approx(1.0)
     assert s.decisions == pytest.approx(2.5) and s.repetition == pytest.approx((0.5 + 0.75) / 2)
+    assert s.compute == pytest.approx((7 + 28) / 2) and s.jerk == 0.0
     assert s.decided == {"x": pytest.approx(5 / 6)} and s.acted == {"x": pytest.approx(2 / 6)}

@@ -41,6 +41,11 @@ def test_same_seed_same_updates_and_actions():
     assert not np.array_equal(filled(2).act(obs, False), a.act(obs, False))
 
 
+def test_compute_of_one_action_is_the_actors_multiply_accumulates():
+    # actor 3 -> 32 -> 32 -> 2
+    assert filled(0).act_macs() == 3 * 32 + 32 * 32 + 32 * 2
+
+
 def test_delayed_actor_updates():
     learner = filled(0)
     stats = [learner.update() for _ in range(4)]

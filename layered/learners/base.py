@@ -54,6 +54,10 @@ class Learner(ABC):
         """The action for `obs`; with `explore`, perturbed for exploration. Never learns."""
 
     @abstractmethod
+    def act_macs(self) -> int:
+        """Multiply-accumulates of one `act` call (the networks it evaluates), for the compute measure."""
+
+    @abstractmethod
     def observe(self, transition: Transition) -> None:
         """Store a transition for later updates."""
 

@@ -76,6 +76,11 @@ class TwinCritic(nn.Module):
         return self.q1(x), self.q2(x)
 
 
+def linear_macs(module: nn.Module) -> int:
+    """Multiply-accumulates of one forward pass of a single input through `module`'s linear layers."""
+    return sum(m.in_features * m.out_features for m in module.modules() if isinstance(m, nn.Linear))
+
+
 def adam(params: Any, lr: float) -> torch.optim.Adam:
     """Adam, fused where this torch build supports it on CPU."""
     try:
@@ -116,6 +121,9 @@ class TD3(Learner):
             noise = self.rng.normal(0.0, self.config.exploration_noise, size=action.shape) * self._half.numpy()
             action = np.clip(action + noise, self.action_space.low, self.action_space.high)
         return action.astype(np.float32)
+
+    def act_macs(self) -> int:
+        return linear_macs(self.actor)
 
     def observe(self, transition: Transition) -> None:
         self.buffer.add(transition)

@@ -18,7 +18,7 @@ from torch import nn
 
 from layered.buffer import ReplayBuffer, Transition
 from layered.learners.base import LEARNERS, Learner, UpdateStats
-from layered.learners.td3 import TD3, TD3Config, adam, mlp
+from layered.learners.td3 import TD3, TD3Config, adam, linear_macs, mlp
 
 
 class TempoRLConfig(TD3Config):
@@ -61,6 +61,9 @@ class TempoRL(Learner):
             x = torch.as_tensor(np.concatenate([obs, action]), dtype=torch.float32)
             skip = int(self.skip_q(x).argmax()) + 1
         return np.append(action, skip).astype(np.float32)
+
+    def act_macs(self) -> int:
+        return self.td3.act_macs() + linear_macs(self.skip_q)
 
     def observe(self, transition: Transition) -> None:
         """Store each period of the repeat for TD3 and every partial repetition for the skip Q."""
