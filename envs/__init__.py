@@ -2,8 +2,9 @@
 
 import os
 
-if "DISPLAY" not in os.environ:  # headless: MuJoCo must render through EGL, chosen before it loads
+if "DISPLAY" not in os.environ:  # headless: MuJoCo renders through EGL, pygame (classic control) offscreen
     os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
 from layered.envs import dm_control_family as _dm_control_family  # noqa: F401  (registers "dmc")
 from layered.envs import gymnasium_family as _gymnasium_family  # noqa: F401  (registers "gym")

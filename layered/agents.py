@@ -20,6 +20,9 @@ from layered.recipe import Recipe
 from layered.stack import Stack
 
 
+MAX_FRAMES = 64
+
+
 class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
     """A Gymnasium env driven by a layer stack, one agent per present layer."""
 
@@ -39,6 +42,8 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self._action_spaces = {n: stack.layers[i].action_space for n, i in self._index.items()}
         self.record = record
         self.trace: list[StepRecord] = []
+        self.capture: str | None = None  # a layer: render the state whenever its contribution is non-zero
+        self.frames: list[tuple[int, np.ndarray]] = []  # (step, rgb frame), at most MAX_FRAMES an episode
         self._obs: np.ndarray = np.zeros(base.observation_space.shape, np.float32)
         self._decided: list[str] = []
         self.episode_return = 0.0
@@ -63,6 +68,7 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self.infos = {a: self._fresh_info(self._index[a]) for a in self.agents}
         self._decided = []
         self.trace = []
+        self.frames = []
         self.episode_return = 0.0
         self.episode_steps = 0
         first = self.stack.next_due(0)
@@ -107,6 +113,10 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
     def _base_step(self) -> bool:
         """Execute the composed action for one base step; True when the episode ended."""
         composition = self.stack.compose()
+        if self.capture is not None and len(self.frames) < MAX_FRAMES:
+            own = composition.contributions.get(self._index[self.capture])
+            if own is not None and np.any(own != 0):
+                self.frames.append((self.episode_steps, self.base.render()))
         self._obs, reward, terminated, truncated, _ = self.base.step(composition.action)
         for i, r in self.stack.layer_rewards(float(reward), composition).items():
             name = self.stack.layers[i].name

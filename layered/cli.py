@@ -8,6 +8,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -16,6 +17,14 @@ from layered.recipe import RecipeError, load_recipe
 from layered.report import plot_episode, results_table
 
 EXIT_BAD_INPUT = 2
+DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]
+
+
+def _thresholds(text: str) -> list[float]:
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -37,6 +46,10 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--threads", type=int, help="torch threads")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
+    ev.add_argument("--threshold-sweep", type=_thresholds, nargs="?", const=DEFAULT_SWEEP, metavar="X,Y,...",
+                    help="evaluate at each threshold (default 0, 0.1, ..., 1) and plot return and action frequency")
+    ev.add_argument("--gallery", nargs="?", const="", metavar="LAYER",
+                    help="render the states where LAYER (default: the fastest) acts, as gallery-LAYER.png")
     sw = sub.add_parser(
         "sweep", help="train every recipe with several seeds, in parallel processes",
         usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--out DIR] [--steps N]",
@@ -77,25 +90,51 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from layered.agents import make_aec_env
-    from layered.evaluate import evaluate
     from layered.trainer import load_learners, phases_of
 
     if not (args.run_dir / "recipe.toml").exists():
         return _fail(f"{args.run_dir} is not a run directory (no recipe.toml)")
-    if args.threshold is not None and args.threshold < 0:
-        return _fail("--threshold must be >= 0")
+    sweep = [args.threshold] if args.threshold is not None else []
+    sweep += args.threshold_sweep or []
+    if any(t < 0 for t in sweep):
+        return _fail("thresholds must be >= 0")
     recipe = load_recipe(args.run_dir / "recipe.toml")
-    learners = load_learners(recipe, args.run_dir)
     active = list(phases_of(recipe)[-1].active)
-    env = make_aec_env(recipe, active=active, evaluation=True, threshold=args.threshold, record=True)
+    if args.gallery == "":
+        args.gallery = active[-1]
+    if args.gallery is not None and args.gallery not in active:
+        return _fail(f"--gallery: no layer {args.gallery!r} in this stack; layers: {', '.join(active)}")
+    learners = load_learners(recipe, args.run_dir)
     episodes = args.episodes or recipe.eval.episodes
-    result = evaluate(env, learners, episodes, recipe.train.seed + recipe.eval.seed_offset, progress=True)
+    seed = recipe.train.seed + recipe.eval.seed_offset
+    out_dir = args.run_dir / "eval"
+    out_dir.mkdir(exist_ok=True)
+    if args.threshold_sweep:
+        _threshold_sweep(recipe, learners, active, args.threshold_sweep, episodes, seed, out_dir)
+    else:
+        _evaluate_once(args, recipe, learners, active, episodes, seed, out_dir)
+    if args.gallery is not None:
+        from layered.evaluate import frames_where_layer_acts
+        from layered.report import save_gallery
+
+        frames = frames_where_layer_acts(recipe, learners, active, args.gallery, seed)
+        png = out_dir / f"gallery-{args.gallery}.png"
+        save_gallery(frames, png, f"{recipe.env.id}: states where layer {args.gallery!r} acts")
+        print(f"gallery of {len(frames)} states where {args.gallery!r} acted (up to 8 shown): {png}")
+    return 0
+
+
+def _evaluate_once(args: argparse.Namespace, recipe: Any, learners: Any, active: list[str], episodes: int,
+                   seed: int, out_dir: Path) -> None:
+    from layered.agents import make_aec_env
+    from layered.evaluate import evaluate
+
+    env = make_aec_env(recipe, active=active, evaluation=True, threshold=args.threshold, record=True)
+    result = evaluate(env, learners, episodes, seed, progress=True)
     threshold = args.threshold if args.threshold is not None else "recipe"
     row = {"phase": "eval", "learn": [], "active": active, "auc": None, "threshold": threshold,
            "episodes": episodes, **result.row()}
-    out = args.run_dir / "eval" / f"threshold-{threshold}-episodes-{episodes}.json"
-    out.parent.mkdir(exist_ok=True)
+    out = out_dir / f"threshold-{threshold}-episodes-{episodes}.json"
     out.write_text(json.dumps(row, indent=2))
     print(results_table([row]))
     print(f"written to {out}")
@@ -104,7 +143,26 @@ def _eval(args: argparse.Namespace) -> int:
         plot_episode(env.trace, env.possible_agents, png, f"{recipe.env.id}: last evaluation episode")
         print(f"episode plot: {png}")
     env.close()
-    return 0
+
+
+def _threshold_sweep(recipe: Any, learners: Any, active: list[str], thresholds: list[float], episodes: int,
+                     seed: int, out_dir: Path) -> None:
+    import csv
+
+    from layered.evaluate import threshold_sweep
+    from layered.report import plot_threshold_sweep
+
+    rows = threshold_sweep(recipe, learners, active, thresholds, episodes, seed)
+    with (out_dir / "threshold-sweep.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    plot_threshold_sweep(rows, out_dir / "threshold-sweep.png", f"{recipe.env.id}: threshold sweep")
+    print("| threshold | return | action repetition | decisions |\n|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['threshold']:g} | {r['return_mean']:.1f} ± {r['return_std']:.1f} | {r['repetition']:.1%} "
+              f"| {r['decisions']:.1f} |")
+    print(f"written to {out_dir / 'threshold-sweep.csv'} and threshold-sweep.png")
 
 
 def _report(args: argparse.Namespace) -> int:

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import csv
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -147,6 +149,42 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
     plt.close(fig)
 
 
+def _slug(setup: Any) -> str:
+    return f"{setup.env}-{setup.method}".replace(":", "-").replace("/", "-")
+
+
+def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str]:
+    """Fig. 2 per setup from its runs' `layered eval --threshold-sweep` (mean over seeds), and the
+    first gallery of states where a layer acts (`layered eval --gallery`)."""
+    parts: list[str] = []
+    for s in setups:
+        sweeps = [p for r in s.runs if (p := r.path / "eval" / "threshold-sweep.csv").exists()]
+        if sweeps:
+            per_run = []
+            for path in sweeps:
+                with path.open() as f:
+                    per_run.append({float(row["threshold"]): row for row in csv.DictReader(f)})
+            common = sorted(set.intersection(*(set(p) for p in per_run)))
+            rows = [{
+                "threshold": t,
+                "return_mean": np.mean([float(p[t]["return_mean"]) for p in per_run]),
+                "return_std": np.std([float(p[t]["return_mean"]) for p in per_run]) if len(per_run) > 1
+                else float(per_run[0][t]["return_std"]),
+                "repetition": np.mean([float(p[t]["repetition"]) for p in per_run]),
+            } for t in common]
+            name = f"threshold-{_slug(s)}.png"
+            plot_threshold_sweep(rows, out / name, f"{s.env} {s.method}: threshold ({len(sweeps)} runs)")
+            parts += [f"### Return and action frequency against the threshold: {s.env}, {s.method}", "",
+                      f"![threshold sweep]({name})", ""]
+        galleries = sorted(p for r in s.runs for p in (r.path / "eval").glob("gallery-*.png"))
+        if galleries:
+            name = f"gallery-{_slug(s)}.png"
+            shutil.copyfile(galleries[0], out / name)
+            parts += [f"### States where a layer acts: {s.env}, {s.method} ({galleries[0]})", "",
+                      f"![gallery]({name})", ""]
+    return parts
+
+
 def write_report(setups: Sequence[Any], out: Path) -> str:
     """Tables 1-3 as Markdown (report.md) and CSV (summary.csv), and learning curves (curves.png)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -162,7 +200,9 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
                   wide_table(turn, EXTRA_MEASURES), ""]
     if realtime:
         parts += ["## Table 3: real-time setting", "", wide_table(realtime, TABLE_3), ""]
-    parts += ["## Runs", "", seeds_table(setups), "", "![learning curves](curves.png)", ""]
+    parts += ["## Learning curves", "", "![learning curves](curves.png)", ""]
+    parts += _threshold_and_gallery_figures(setups, out)
+    parts += ["## Runs", "", seeds_table(setups), ""]
     text = "\n".join(parts)
     (out / "report.md").write_text(text)
     keys = sorted({k for s in setups for r in s.runs for k in r.final if k != "phase"})
@@ -174,3 +214,35 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
             writer.writerow([s.env, s.label, s.method, " ".join(str(r.seed) for r in s.runs), *stats])
     plot_setup_curves(setups, out / "curves.png")
     return text
+
+
+def plot_threshold_sweep(rows: Sequence[dict[str, Any]], out_png: Path, title: str) -> None:
+    """Return and action frequency (share of steps with a new action) against the threshold."""
+    x = [float(r["threshold"]) for r in rows]
+    fig, ax = plt.subplots(figsize=(6.5, 4), constrained_layout=True)
+    ax.errorbar(x, [float(r["return_mean"]) for r in rows], yerr=[float(r["return_std"]) for r in rows],
+                marker="o", color="C0", capsize=3)
+    ax.set_xlabel("evaluation threshold (fraction of max action)")
+    ax.set_ylabel("evaluation return", color="C0")
+    other = ax.twinx()
+    other.plot(x, [1 - float(r["repetition"]) for r in rows], marker="s", color="C1")
+    other.set_ylabel("action frequency (new actions per step)", color="C1")
+    other.set_ylim(0, 1.05)
+    ax.set_title(title, loc="left")
+    ax.grid(alpha=0.3)
+    fig.savefig(out_png, dpi=120)
+    plt.close(fig)
+
+
+def save_gallery(frames: Sequence[tuple[int, Any]], out_png: Path, title: str, count: int = 8) -> None:
+    """Up to `count` frames, evenly spread over those given, in one row with their step numbers."""
+    chosen = [frames[round(k)] for k in np.linspace(0, len(frames) - 1, min(count, len(frames)))] if frames else []
+    fig, axes = plt.subplots(1, max(1, len(chosen)), figsize=(2 * max(1, len(chosen)), 2.4), squeeze=False)
+    for ax in axes[0]:
+        ax.axis("off")
+    for ax, (step, frame) in zip(axes[0], chosen, strict=False):
+        ax.imshow(frame)
+        ax.set_title(f"step {step}", fontsize="small")
+    fig.suptitle(title if chosen else f"{title}: the layer never acted", fontsize="medium")
+    fig.savefig(out_png, dpi=100, bbox_inches="tight")
+    plt.close(fig)

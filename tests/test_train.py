@@ -84,6 +84,13 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     assert (out / "eval" / "threshold-0.0-episodes-2.png").stat().st_size > 0
     assert f"{written['return_mean']:.1f}" in proc.stdout and "evaluating" in proc.stderr
 
+    proc = layered_cli("eval", out, "--episodes", 1, "--threshold-sweep", "0,0.5", "--gallery")
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "eval" / "threshold-sweep.csv").read_text().count("\n") == 3  # header and two thresholds
+    assert (out / "eval" / "threshold-sweep.png").stat().st_size > 0
+    assert (out / "eval" / "gallery-fast.png").stat().st_size > 0
+    assert layered_cli("eval", out, "--gallery", "medium").returncode == 2
+
     before = sorted(p.name for p in out.iterdir())
     assert layered_cli("train", recipe, "--out", out).returncode == 2  # never overwrites a run
     assert sorted(p.name for p in out.iterdir()) == before
