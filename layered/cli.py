@@ -60,6 +60,9 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel processes (default: cores)")
     sw.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep directory (default runs/sweep)")
     sw.add_argument("--steps", type=int, help="cap every training phase at N environment steps")
+    sw.add_argument("--backend", choices=["local", "ray"], default="local",
+                    help="local processes (default) or Ray tasks (needs the extra layered[ray])")
+    sw.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
     rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
     rep.add_argument("runs", type=Path, nargs="+", help="run directories, or folders that hold them")
     rep.add_argument("--out", type=Path, help="report directory (default runs/report-<time>)")
@@ -180,14 +183,20 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from layered.sweep import plan, run_local
+    from layered.sweep import plan, run_local, run_ray
 
     overrides = [a for a in args.recipes if "=" in a] + args.overrides
     recipes = [a for a in args.recipes if "=" not in a]
     if args.seeds <= 0 or args.jobs <= 0 or (args.steps is not None and args.steps <= 0):
         return _fail("--seeds, --jobs and --steps must be positive")
     jobs = plan(recipes, args.seeds, args.out, overrides, args.steps)
-    outcomes = run_local(jobs, args.jobs)
+    if args.backend == "ray":
+        try:
+            outcomes = run_ray(jobs, args.address)
+        except RuntimeError as e:
+            return _fail(str(e))
+    else:
+        outcomes = run_local(jobs, args.jobs)
     failed = [o for o in outcomes if o.status == "failed"]
     print(f"{len(outcomes) - len(failed)} of {len(jobs)} runs finished in {args.out}; "
           f"tables and figures: layered report {args.out}")

@@ -107,3 +107,55 @@ def run_local(jobs: Sequence[Job], workers: int) -> list[Outcome]:
 
 def _one_thread() -> None:
     os.environ["OMP_NUM_THREADS"] = "1"
+
+
+def _pack(run_dir: Path) -> dict[str, bytes]:
+    """Every file of a finished run directory but the resume state, keyed by relative path."""
+    return {
+        str(p.relative_to(run_dir)): p.read_bytes()
+        for p in sorted(run_dir.rglob("*")) if p.is_file() and p.name != "run.pt"
+    }
+
+
+def _run_remote(job: Job) -> tuple[Outcome, dict[str, bytes]]:
+    """A Ray task: train the job in a scratch directory of whichever machine runs it, return its files."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="layered-") as scratch:
+        remote_job = Job(job.recipe, Path(scratch) / "run", job.label, job.max_steps)
+        outcome = run_job(remote_job)
+        files = _pack(remote_job.out) if remote_job.out.exists() else {}
+    return Outcome(job, outcome.status, outcome.detail.replace(str(remote_job.out), str(job.out))), files
+
+
+def run_ray(jobs: Sequence[Job], address: str | None = None) -> list[Outcome]:
+    """Run the unfinished jobs as Ray tasks (one CPU each) on the cluster at `address` (default:
+    start a local one) and write each run's files into its run directory here.
+
+    A run stopped on a cluster starts again from its beginning; finished runs are skipped.
+    """
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("the ray backend needs the optional extra: pip install 'layered[ray]'") from None
+    ray.init(address=address, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True,
+             runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})
+    task = ray.remote(num_cpus=1)(_run_remote)
+    outcomes = [Outcome(j, "skipped", "already finished") for j in jobs if (j.out / "results.json").exists()]
+    pending = {task.remote(j): j for j in jobs if not (j.out / "results.json").exists()}
+    bar = tqdm(total=len(jobs), initial=len(outcomes), desc="sweep (ray)", unit="run", file=sys.stderr)
+    for outcome in outcomes:
+        bar.write(f"{outcome.status:>7}  {outcome.job.out}: {outcome.detail}")
+    while pending:
+        done, _ = ray.wait(list(pending), num_returns=1)
+        outcome, files = ray.get(done[0])
+        del pending[done[0]]
+        for relative, content in files.items():
+            target = outcome.job.out / relative
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(content)
+        outcomes.append(outcome)
+        bar.update()
+        bar.write(f"{outcome.status:>7}  {outcome.job.out}: {outcome.detail}")
+    bar.close()
+    return outcomes

@@ -4,6 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=100", "eval.episodes=1"]
 
@@ -37,3 +39,17 @@ def test_sweep_refuses_bad_recipes_and_foreign_run_directories(tmp_path):
     assert sweep(PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 100, "--out", out).returncode == 0
     proc = sweep(PENDULUM / "td3.toml", *TINY, "learner.lr=1e-3", "--seeds", 1, "--out", out)
     assert proc.returncode == 2 and "holds a different recipe" in proc.stderr
+
+
+def test_ray_backend_runs_the_same_jobs_and_gathers_the_same_run_directories(tmp_path):
+    pytest.importorskip("ray", reason="the ray backend is the optional extra layered[ray]")
+    args = (PENDULUM / "td3.toml", *TINY, "--seeds", 2, "--steps", 120)
+    local = sweep(*args, "--jobs", 2, "--out", tmp_path / "local")
+    assert local.returncode == 0, local.stderr
+    remote = sweep(*args, "--backend", "ray", "--out", tmp_path / "ray")
+    assert remote.returncode == 0, remote.stderr
+    for seed in (0, 1):
+        run = Path("pendulum/td3") / f"seed{seed}"
+        for name in ("metrics.csv", "episodes.csv", "recipe.toml"):
+            assert (tmp_path / "ray" / run / name).read_text() == (tmp_path / "local" / run / name).read_text()
+        assert (tmp_path / "ray" / run / "checkpoints" / "fast.pt").exists()
