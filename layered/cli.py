@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from layered.checkpoint import CheckpointError
+from layered.plugins import PluginError, load_plugins
 from layered.recipe import RecipeError, load_recipe
 from layered.report import plot_episode, results_table
 
@@ -40,11 +41,15 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--seed", type=int, help="same as train.seed=S")
     tr.add_argument("--steps", type=int, help="cap every training phase at N environment steps")
     tr.add_argument("--threads", type=int, help="torch threads (use 1 per process when running several)")
+    tr.add_argument("--plugin", action="append", default=[], metavar="FILE.py|MODULE",
+                    help="import your own combiner, learner, order or env family first (repeatable)")
     ev = sub.add_parser("eval", help="evaluate a trained run directory")
     ev.add_argument("run_dir", type=Path)
     ev.add_argument("--episodes", type=int, help="episodes (default: the recipe's eval.episodes)")
     ev.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--threads", type=int, help="torch threads")
+    ev.add_argument("--plugin", action="append", default=[], metavar="FILE.py|MODULE",
+                    help="plugins to import besides those the run was trained with")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
     ev.add_argument("--threshold-sweep", type=_thresholds, nargs="?", const=DEFAULT_SWEEP, metavar="X,Y,...",
                     help="evaluate at each threshold (default 0, 0.1, ..., 1) and plot return and action frequency")
@@ -63,6 +68,8 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--backend", choices=["local", "ray"], default="local",
                     help="local processes (default) or Ray tasks (needs the extra layered[ray])")
     sw.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
+    sw.add_argument("--plugin", action="append", default=[], metavar="FILE.py|MODULE",
+                    help="import your own combiner, learner, order or env family first (repeatable)")
     rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
     rep.add_argument("runs", type=Path, nargs="+", help="run directories, or folders that hold them")
     rep.add_argument("--out", type=Path, help="report directory (default runs/report-<time>)")
@@ -78,6 +85,7 @@ def _train(args: argparse.Namespace) -> int:
     from layered.trainer import train
 
     overrides = list(args.overrides) + ([f"train.seed={args.seed}"] if args.seed is not None else [])
+    plugins = load_plugins(args.plugin)
     recipe = load_recipe(args.recipe, overrides)
     if args.steps is not None and args.steps <= 0:
         return _fail("--steps must be a positive number of environment steps")
@@ -86,14 +94,14 @@ def _train(args: argparse.Namespace) -> int:
         return _fail(f"{out} already holds a run; choose another --out")
     print(f"training {args.recipe} -> {out}", file=sys.stderr)
     source = Path(args.recipe)
-    train(recipe, out, max_steps=args.steps, label=f"{source.parent.name}/{source.stem}")
+    train(recipe, out, max_steps=args.steps, label=f"{source.parent.name}/{source.stem}", plugins=plugins)
     print((out / "results.md").read_text())
     print(f"run directory: {out} (results.json, metrics.csv, curves.png, checkpoints/)")
     return 0
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from layered.trainer import load_learners, phases_of
+    from layered.trainer import load_learners, phases_of, run_plugins
 
     if not (args.run_dir / "recipe.toml").exists():
         return _fail(f"{args.run_dir} is not a run directory (no recipe.toml)")
@@ -101,6 +109,7 @@ def _eval(args: argparse.Namespace) -> int:
     sweep += args.threshold_sweep or []
     if any(t < 0 for t in sweep):
         return _fail("thresholds must be >= 0")
+    load_plugins(run_plugins(args.run_dir) + args.plugin)
     recipe = load_recipe(args.run_dir / "recipe.toml")
     active = list(phases_of(recipe)[-1].active)
     if args.gallery == "":
@@ -189,7 +198,8 @@ def _sweep(args: argparse.Namespace) -> int:
     recipes = [a for a in args.recipes if "=" not in a]
     if args.seeds <= 0 or args.jobs <= 0 or (args.steps is not None and args.steps <= 0):
         return _fail("--seeds, --jobs and --steps must be positive")
-    jobs = plan(recipes, args.seeds, args.out, overrides, args.steps)
+    plugins = load_plugins(args.plugin)
+    jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins)
     if args.backend == "ray":
         try:
             outcomes = run_ray(jobs, args.address)
@@ -222,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         for line in e.lines:
             print(f"layered: error: {line}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except CheckpointError as e:
+    except (CheckpointError, PluginError) as e:
         return _fail(str(e))
 
 

@@ -42,7 +42,8 @@ class Combiner(ABC):
     def admit(
         self, above: np.ndarray, contribution: np.ndarray, low: np.ndarray, high: np.ndarray
     ) -> np.ndarray:
-        """The part of a lower layer's `contribution` kept at evaluation, given the sum `above`."""
+        """The part of a lower layer's `contribution` that joins the sum `above`; the built-in
+        combiners drop parts only at evaluation (they are given a threshold only then)."""
         return contribution
 
 

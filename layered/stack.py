@@ -113,7 +113,6 @@ class Stack:
             raise ValueError(f"active layers {wanted} must be a non-empty subset of {names}")
         self.active = [i for i, n in enumerate(names) if n in wanted]
         self.observation_spaces = [self._observation_space(obs_space, layer) for layer in self.layers]
-        self.evaluation = evaluation
         self.held = [np.zeros(layer.action_space.shape, np.float32) for layer in self.layers]
         # outputs chosen but not yet in effect, oldest first (the real-time setting)
         self.inflight = [np.zeros((layer.delay, *layer.action_space.shape), np.float32) for layer in self.layers]
@@ -182,7 +181,7 @@ class Stack:
         admit_by: Combiner | None = None
         for position, i in enumerate(self.active):
             own = self.held[i][: self.action_dim]
-            if admit_by is not None and self.evaluation:
+            if admit_by is not None:
                 own = admit_by.admit(total, own, self.low, self.high)
             route = routes[i] = self._route(position, i)
             contributions[i] = np.zeros_like(own) if route is Route.DEFER else own

@@ -20,6 +20,7 @@ from typing import Any
 import tomli_w
 from tqdm import tqdm
 
+from layered.plugins import load_plugins
 from layered.recipe import RecipeError, load_recipe, resolved
 
 
@@ -31,6 +32,7 @@ class Job:
     out: Path
     label: str
     max_steps: int | None
+    plugins: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -43,7 +45,7 @@ class Outcome:
 
 
 def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequence[str] = (),
-         max_steps: int | None = None) -> list[Job]:
+         max_steps: int | None = None, plugins: Sequence[str] = ()) -> list[Job]:
     """The jobs of a sweep; every recipe is validated first, so a bad one stops it before any run.
 
     Run directories are `out/<recipe folder>/<recipe name>/seed<k>`.
@@ -55,7 +57,7 @@ def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequen
         for seed in range(seeds):
             recipe = load_recipe(path, [*overrides, f"train.seed={seed}"])
             run_dir = out / path.parent.name / path.stem / f"seed{seed}"
-            job = Job(resolved(recipe), run_dir, label, max_steps)
+            job = Job(resolved(recipe), run_dir, label, max_steps, tuple(plugins))
             _check_same_recipe(job)
             jobs.append(job)
     return jobs
@@ -77,11 +79,12 @@ def run_job(job: Job) -> Outcome:
     if (job.out / "results.json").exists():
         return Outcome(job, "skipped", "already finished")
     torch.set_num_threads(1)
+    load_plugins(job.plugins)
     job.out.mkdir(parents=True, exist_ok=True)
     with (job.out / "train.log").open("a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
         try:
             rows = train(load_recipe(job.recipe), job.out, max_steps=job.max_steps, progress=True,
-                         label=job.label, resume=True)
+                         label=job.label, resume=True, plugins=job.plugins)
         except Exception as e:  # reported per job; the sweep goes on with the others
             print(f"failed: {e.__class__.__name__}: {e}", file=log)
             return Outcome(job, "failed", f"{e.__class__.__name__}: {e} (see {job.out / 'train.log'})")
@@ -122,7 +125,7 @@ def _run_remote(job: Job) -> tuple[Outcome, dict[str, bytes]]:
     import tempfile
 
     with tempfile.TemporaryDirectory(prefix="layered-") as scratch:
-        remote_job = Job(job.recipe, Path(scratch) / "run", job.label, job.max_steps)
+        remote_job = Job(job.recipe, Path(scratch) / "run", job.label, job.max_steps, job.plugins)
         outcome = run_job(remote_job)
         files = _pack(remote_job.out) if remote_job.out.exists() else {}
     return Outcome(job, outcome.status, outcome.detail.replace(str(remote_job.out), str(job.out))), files

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -97,19 +98,22 @@ class CsvLog:
 
 def train(
     recipe: Recipe, out_dir: str | Path, max_steps: int | None = None, progress: bool = True,
-    label: str | None = None, resume: bool = False,
+    label: str | None = None, resume: bool = False, plugins: Sequence[str] = (),
 ) -> list[dict[str, Any]]:
     """Train every phase of `recipe`, writing the run directory; `max_steps` caps each phase.
 
     `label` names the setup for reports (e.g. `pendulum/tla-c`); runs of the same setup with
     different seeds share it. It defaults to the run directory's name. After each phase the
     whole training state is saved; with `resume`, a run that was stopped continues from its
-    last finished phase and ends exactly as if it had never stopped.
+    last finished phase and ends exactly as if it had never stopped. `plugins` (see
+    layered.plugins) are recorded so that evaluating the run imports them again.
     Returns the results row of each phase, as in results.json.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "recipe.toml").write_text(tomli_w.dumps(resolved(recipe)))
+    if plugins:
+        (out / "plugins.json").write_text(json.dumps(list(plugins)))
     torch.manual_seed(recipe.train.seed)
     probe = make_aec_env(recipe)
     learners = build_learners(recipe, probe)
@@ -134,6 +138,12 @@ def train(
         })
     write_results(recipe, rows, out, label or out.name)
     return rows
+
+
+def run_plugins(run_dir: Path) -> list[str]:
+    """The plugins a run was trained with."""
+    path = run_dir / "plugins.json"
+    return list(json.loads(path.read_text())) if path.exists() else []
 
 
 def _restore(run_state: Path, learners: dict[str, Learner], max_steps: int | None) -> list[dict[str, Any]]:
