@@ -35,6 +35,12 @@ def fast_to_slow(names: Sequence[str], phases: Sequence[Any] = ()) -> list[Phase
     return [Phase(learn=(names[k],), active=tuple(names[k:])) for k in range(n - 1, -1, -1)]
 
 
+@ORDERS.register("joint")
+def joint(names: Sequence[str], phases: Sequence[Any] = ()) -> list[Phase]:
+    """Every layer learns at once in one phase (the authors' jointly trained gated TLA)."""
+    return [Phase(learn=tuple(names), active=tuple(names))]
+
+
 @ORDERS.register("explicit")
 def explicit(names: Sequence[str], phases: Sequence[Any] = ()) -> list[Phase]:
     """The recipe's own phases; a phase's active layers default to its learners plus all trained before."""

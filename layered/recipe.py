@@ -77,6 +77,11 @@ class LayerConfig(Section):
     """Reward penalty per step: this times the mean of |action| / the layer's action bound."""
     defer_reward_scale: tuple[float, float] = (2.0, 0.5)
     """Gate layers: factors on rewards r <= 0 and r > 0 earned while the layers below act."""
+    defer_penalty: float = Field(0.0, ge=0)
+    """Gate layers: reward penalty per base step while the layers below act (p per step)."""
+    deviation_penalty: float = Field(0.0, ge=0)
+    """Reward penalty per step: this times mean |executed action - action proposed by the
+    nearest deferring gate at or above this layer| / max action (j)."""
     learner: dict[str, Any] = {}
     """Learner settings for this layer, over the recipe's `[learner]` table."""
 

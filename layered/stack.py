@@ -29,6 +29,8 @@ class Layer:
     half_range: np.ndarray  # half-width of the layer's action dims, for the action penalty
     action_penalty: float
     defer_reward_scale: tuple[float, float]
+    defer_penalty: float
+    deviation_penalty: float
     delay: int  # decisions between choosing an output and its taking effect
     max_repeat: int  # > 1: the output's last entry says for how many periods to hold it
 
@@ -87,7 +89,7 @@ class Stack:
         self.action_dim = int(action_space.shape[0])
         self.low = action_space.low.astype(np.float32)
         self.high = action_space.high.astype(np.float32)
-        env_half = (self.high - self.low) / 2
+        self.env_half = env_half = (self.high - self.low) / 2
         self.layers: list[Layer] = []
         for i, cfg in enumerate(recipe.layers):
             kind = COMBINERS.get(recipe.combiner_kind(i))
@@ -104,6 +106,8 @@ class Stack:
                 half_range=((space.high - space.low) / 2)[: self.action_dim],
                 action_penalty=cfg.action_penalty,
                 defer_reward_scale=cfg.defer_reward_scale,
+                defer_penalty=cfg.defer_penalty,
+                deviation_penalty=cfg.deviation_penalty,
                 delay=cfg.delay,
                 max_repeat=cfg.max_repeat,
             ))
@@ -194,18 +198,26 @@ class Stack:
     def layer_rewards(self, reward: float, composition: Composition) -> dict[int, float]:
         """Each present layer's shaped share of one base-step reward.
 
-        A layer the walk reached pays its action penalty; a gate that deferred has the reward
-        scaled (x2 when r <= 0, x0.5 when r > 0 by default). Layers below a committed gate get
-        the plain reward: it still accrues to the transition from their last decision.
+        A layer the walk reached pays its action penalty and its deviation penalty (how far the
+        executed action is from the action proposed by the nearest deferring gate at or above
+        it); a gate that deferred has the reward scaled (x2 when r <= 0, x0.5 when r > 0 by
+        default) and pays its defer penalty. Layers below a committed gate get the plain
+        reward: it still accrues to the transition from their last decision.
         """
         out: dict[int, float] = {}
+        deferring = [i for i in self.active if composition.routes.get(i) is Route.DEFER]
         for i in self.active:
             layer, r = self.layers[i], float(reward)
             if composition.routes.get(i) is Route.DEFER:
                 negative, positive = layer.defer_reward_scale
-                r *= negative if r <= 0 else positive
-            if i in composition.contributions and layer.action_penalty:
+                r = r * (negative if r <= 0 else positive) - layer.defer_penalty
+            if i in composition.contributions:
                 r -= layer.action_penalty * float(np.mean(np.abs(composition.contributions[i]) / layer.half_range))
+                gates = [k for k in deferring if k <= i]
+                if layer.deviation_penalty and gates:
+                    proposed = self.held[gates[-1]][: self.action_dim]
+                    deviation = float(np.mean(np.abs(composition.action - proposed) / self.env_half))
+                    r -= layer.deviation_penalty * deviation
             out[i] = r
         return out
 

@@ -30,3 +30,7 @@ def test_explicit_phases_default_to_learners_plus_everything_trained_before():
         Phase(("slow", "mid"), ("slow", "mid", "fast"), steps=10),
         Phase(("mid",), ("mid",)),
     ]
+
+
+def test_joint_trains_every_layer_at_once():
+    assert ORDERS.get("joint")(NAMES, []) == [Phase(("slow", "mid", "fast"), ("slow", "mid", "fast"))]

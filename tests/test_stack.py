@@ -214,3 +214,17 @@ def test_a_repeating_layer_holds_its_output_for_the_chosen_number_of_periods():
     # 2.6 rounds to 3 periods of 2 steps: the slow layer decides again at t=6, then every period
     assert [0 in d for d in schedule] == [True, False, False, False, False, False, True, False, True, False]
     assert stack.compose().action == pytest.approx([0.6])  # the count is not part of the action
+
+
+def test_joint_gate_shaping_defer_and_deviation_penalties():
+    recipe = stack_recipe([4, 1], "gate")
+    slow = recipe.layers[0].model_copy(update={"defer_reward_scale": (1.0, 1.0), "defer_penalty": 1.0,
+                                               "deviation_penalty": 0.5})
+    fast = recipe.layers[1].model_copy(update={"deviation_penalty": 2.0})
+    stack = Stack(recipe.model_copy(update={"layers": [slow, fast]}), OBS, ACT)
+    stack.hold(0, np.array([1.0, -1.0]))  # proposes 1.0 but defers
+    stack.hold(1, np.array([-1.0]))  # executed -1.0: deviation |(-1) - 1| / max action 2 = 1.0
+    rewards = stack.layer_rewards(-3.0, stack.compose())
+    assert rewards == pytest.approx({0: -3.0 - 1.0 - 0.5 * 1.0, 1: -3.0 - 2.0 * 1.0})
+    stack.hold(0, np.array([1.0, 1.0]))  # commits: no penalties for anyone
+    assert stack.layer_rewards(-3.0, stack.compose()) == pytest.approx({0: -3.0, 1: -3.0})

@@ -98,15 +98,34 @@ def test_temporl_learns_from_every_period_and_every_partial_repetition():
     states = [np.full(3, k, np.float32) for k in range(4)]
     path = tuple((states[k + 1], float(k + 1)) for k in range(3))  # rewards 1, 2, 3
     learner.observe(Transition(states[0], np.array([0.3, 3.0], np.float32), 6.0, states[3], True, 0.5, path))
-    assert len(learner.td3.buffer) == 3 and len(learner.skip_buffer) == 6  # 3 periods; 3 + 2 + 1 segments
-    sb = learner.skip_buffer
+    assert len(learner.td3.buffer) == 3 and len(learner.choice.buffer) == 6  # 3 periods; 3 + 2 + 1 segments
+    sb = learner.choice.buffer
     rows = {(int(sb._obs[i, 0]), int(sb._action[i, 1])): (float(sb._reward[i, 0]), float(sb._discount[i, 0]),
                                                           float(sb._not_done[i, 0])) for i in range(6)}
-    assert rows[(0, 3)] == (1 + 0.5 * 2 + 0.25 * 3, 0.125, 0.0)  # the whole skip ends the episode
-    assert rows[(0, 2)] == (1 + 0.5 * 2, 0.25, 1.0)
-    assert rows[(1, 1)] == (2.0, 0.5, 1.0)
-    assert rows[(2, 1)] == (3.0, 0.5, 0.0)
+    # keyed by (start state, choice index = length - 1)
+    assert rows[(0, 2)] == (1 + 0.5 * 2 + 0.25 * 3, 0.125, 0.0)  # the whole skip ends the episode
+    assert rows[(0, 1)] == (1 + 0.5 * 2, 0.25, 1.0)
+    assert rows[(1, 0)] == (2.0, 0.5, 1.0)
+    assert rows[(2, 0)] == (3.0, 0.5, 0.0)
     assert float(learner.td3.buffer._not_done[2, 0]) == 0.0 and float(learner.td3.buffer._not_done[0, 0]) == 1.0
     action = learner.act(states[0], explore=True)
     assert space.contains(action) and action[1] in (1, 2, 3, 4)
     assert learner.update() is not None
+
+
+def test_gate_learner_proposes_an_action_and_a_gate_and_learns_which_pays():
+    """Committing pays 1, deferring 0, with no future: the greedy gate must learn to commit."""
+    from layered.learners.gate_td3 import GateTD3, GateTD3Config
+
+    space = Box(np.array([-2.0, -1.0], np.float32), np.array([2.0, 1.0], np.float32))
+    learner = GateTD3(OBS, space, GateTD3Config(hidden=(32,), batch_size=64, lr=3e-3), seed=0)
+    obs = np.zeros(3, np.float32)
+    for _ in range(400):
+        a = learner.random_action()
+        assert a[1] in (-1.0, 1.0)
+        learner.observe(Transition(obs, a, 1.0 if a[1] > 0 else 0.0, obs, True, 0.99))
+    assert len(learner.td3.buffer) == len(learner.choice.buffer) == 400
+    for _ in range(300):
+        learner.update()
+    assert learner.act(obs, explore=False)[1] == 1.0
+    assert learner.act_macs() == (3 * 32 + 32 * 1) + (4 * 32 + 32 * 2)

@@ -1,0 +1,118 @@
+"""A discrete choice made on top of a TD3 action: a Q-network on (observation, action) whose
+targets bootstrap from the TD3 critic. TempoRL's skip length and a learned gate are such choices."""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium.spaces import Box
+from torch import nn
+
+from layered.buffer import ReplayBuffer, Transition
+from layered.learners.base import Learner, UpdateStats
+from layered.learners.td3 import TD3, TD3Config, adam, linear_macs, mlp
+
+
+class ChoiceQ:
+    """Values `n` choices for a state and the action TD3 proposed there, and learns them."""
+
+    def __init__(self, td3: TD3, n: int) -> None:
+        cfg = td3.config
+        obs_dim, act_dim = td3.obs_space.shape[0], td3.action_space.shape[0]
+        self.td3 = td3
+        self.n = n
+        self.net = mlp((obs_dim + act_dim, *cfg.hidden, n))
+        self.opt = adam(self.net.parameters(), cfg.lr)
+        self.buffer = ReplayBuffer(obs_dim, act_dim + 1, cfg.buffer_size)  # the choice is the last column
+
+    @torch.no_grad()
+    def choose(self, obs: np.ndarray, action: np.ndarray, epsilon: float, rng: np.random.Generator) -> int:
+        """The index of the best choice, or with probability `epsilon` a uniformly random one."""
+        if epsilon and rng.random() < epsilon:
+            return int(rng.integers(self.n))
+        return int(self.net(torch.as_tensor(np.concatenate([obs, action]), dtype=torch.float32)).argmax())
+
+    def add(self, transition: Transition, choice: int) -> None:
+        """Store that `choice` was made with `transition.action` (without the choice's own output)."""
+        self.buffer.add(transition._replace(action=np.append(transition.action, choice), path=()))
+
+    def update(self, batch_size: int, rng: np.random.Generator) -> float | None:
+        """One regression of the chosen values on reward + discount x the TD3 target's value."""
+        if len(self.buffer) == 0:
+            return None
+        b = self.buffer.sample(batch_size, rng)
+        action, choice = b.action[:, :-1], b.action[:, -1:].long()
+        with torch.no_grad():
+            q1, q2 = self.td3.critic_target(b.next_obs, self.td3.actor_target(b.next_obs))
+            target = b.reward + b.not_done * b.discount * torch.min(q1, q2)
+        loss = nn.functional.mse_loss(self.net(torch.cat([b.obs, action], dim=-1)).gather(1, choice), target)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return loss.item()
+
+    def macs(self) -> int:
+        return linear_macs(self.net)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"net": self.net.state_dict(), "opt": self.opt.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.net.load_state_dict(state["net"])
+        self.opt.load_state_dict(state["opt"])
+
+
+class TD3WithChoice(Learner):
+    """A learner whose output is a TD3 action followed by one discrete choice, encoded as a number."""
+
+    def __init__(self, obs_space: Box, action_space: Box, config: TD3Config, seed: int, choices: int) -> None:
+        super().__init__(obs_space, action_space, config, seed)
+        inner = Box(action_space.low[:-1], action_space.high[:-1], dtype=np.float32)
+        own = set(type(config).model_fields) - set(TD3Config.model_fields)
+        self.td3 = TD3(obs_space, inner, TD3Config(**config.model_dump(exclude={"kind", *own})), seed)
+        self.rng = np.random.default_rng([seed, 1])
+        self.choice = ChoiceQ(self.td3, choices)
+
+    @abstractmethod
+    def encode(self, index: int) -> float:
+        """The output value of choice `index`."""
+
+    @abstractmethod
+    def epsilon(self) -> float:
+        """While exploring, the probability of a uniformly random choice."""
+
+    def random_action(self) -> np.ndarray:
+        choice = self.encode(int(self.rng.integers(self.choice.n)))
+        return np.append(self.td3.random_action(), choice).astype(np.float32)
+
+    def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
+        action = self.td3.act(obs, explore)
+        index = self.choice.choose(obs, action, self.epsilon() if explore else 0.0, self.rng)
+        return np.append(action, self.encode(index)).astype(np.float32)
+
+    def act_macs(self) -> int:
+        return self.td3.act_macs() + self.choice.macs()
+
+    def update(self) -> UpdateStats | None:
+        stats = self.td3.update()
+        if stats is not None:
+            self.choice.update(self.td3.config.batch_size, self.rng)
+        return stats
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"td3": self.td3.state_dict(), "choice": self.choice.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.td3.load_state_dict(state["td3"])
+        self.choice.load_state_dict(state["choice"])
+
+    def resume_state(self) -> dict[str, Any]:
+        return {**super().resume_state(), "td3": self.td3.resume_state(), "choices": self.choice.buffer.state_dict()}
+
+    def load_resume_state(self, state: dict[str, Any]) -> None:
+        super().load_resume_state(state)
+        self.td3.load_resume_state(state["td3"])
+        self.choice.buffer.load_state_dict(state["choices"])

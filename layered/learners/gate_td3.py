@@ -1,0 +1,51 @@
+"""A gate layer's learner for jointly trained gated stacks (the authors' later TLA).
+
+TD3 proposes the layer's action; a gate Q-network on (observation, proposed action) values the
+two choices, defer (let the layers below act) or commit (hold the action for the period), and
+picks between them epsilon-greedily while exploring. The gate's target bootstraps from TD3's
+target critic, so both learn from the same transitions of the layer.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from gymnasium.spaces import Box
+from pydantic import Field
+
+from layered.buffer import Transition
+from layered.learners.base import LEARNERS
+from layered.learners.choice import TD3WithChoice
+from layered.learners.td3 import TD3Config
+
+
+class GateTD3Config(TD3Config):
+    """TD3 settings plus the gate's exploration."""
+
+    kind: Literal["td3-gate"] = "td3-gate"  # type: ignore[assignment]
+    gate_epsilon: float = Field(0.1, ge=0, le=1)
+    """While exploring, the probability of a uniformly random gate choice."""
+
+
+@LEARNERS.register("td3-gate")
+class GateTD3(TD3WithChoice):
+    """TD3 for the proposed action, a two-valued Q-network for the gate (choice 0 defers, 1 commits)."""
+
+    Config = GateTD3Config
+    config: GateTD3Config
+
+    def __init__(self, obs_space: Box, action_space: Box, config: GateTD3Config, seed: int) -> None:
+        if action_space.shape[0] < 2 or action_space.low[-1] != -1 or action_space.high[-1] != 1:
+            raise ValueError("the td3-gate learner needs a gate layer (combine = 'gate'): its last output is the gate")
+        super().__init__(obs_space, action_space, config, seed, choices=2)
+
+    def encode(self, index: int) -> float:
+        return 1.0 if index == 1 else -1.0
+
+    def epsilon(self) -> float:
+        return self.config.gate_epsilon
+
+    def observe(self, transition: Transition) -> None:
+        proposed = transition._replace(action=transition.action[:-1], path=())
+        self.td3.observe(proposed)
+        self.choice.add(proposed, 1 if transition.action[-1] > 0 else 0)
