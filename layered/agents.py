@@ -129,8 +129,8 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
                     info["path"].append((self.stack.observation(i, self._obs), info["period_reward"]))
                     info["period_reward"] = 0.0
         if self.record:
-            acted = tuple(self.stack.layers[i].name for i, c in composition.contributions.items() if np.any(c != 0))
-            self.trace.append(StepRecord(composition.action, float(reward), tuple(self._decided), acted))
+            sizes = {self.stack.layers[i].name: float(np.mean(np.abs(c))) for i, c in composition.contributions.items()}
+            self.trace.append(StepRecord(composition.action, float(reward), tuple(self._decided), sizes))
         self.episode_return += float(reward)
         self.episode_steps += 1
         self._decided = []

@@ -10,12 +10,17 @@ import numpy as np
 
 @dataclass(frozen=True)
 class StepRecord:
-    """One base step as executed: the action, which layers decided, and which changed the action."""
+    """One base step as executed: the action, which layers decided, and what each contributed."""
 
     action: np.ndarray
     reward: float
     decided: tuple[str, ...]  # layers whose network was evaluated at this step
-    acted: tuple[str, ...]  # layers whose contribution to the action was non-zero
+    contributions: dict[str, float]  # per layer the walk reached: mean |contribution| over dimensions
+
+    @property
+    def acted(self) -> tuple[str, ...]:
+        """Layers whose contribution to the action was non-zero."""
+        return tuple(name for name, size in self.contributions.items() if size > 0)
 
 
 def action_repetition(actions: Sequence[np.ndarray]) -> float:
@@ -56,6 +61,7 @@ class EpisodeMeasures:
     compute: int  # multiply-accumulates of every network evaluation
     decided: dict[str, int] = field(default_factory=dict)  # per layer: steps it was evaluated
     acted: dict[str, int] = field(default_factory=dict)  # per layer: steps its contribution was non-zero
+    contribution: dict[str, float] = field(default_factory=dict)  # per layer: sum over steps of mean |c|
 
 
 def measure_episode(trace: Sequence[StepRecord], macs: dict[str, int]) -> EpisodeMeasures:
@@ -70,6 +76,7 @@ def measure_episode(trace: Sequence[StepRecord], macs: dict[str, int]) -> Episod
         compute=sum(macs[n] for s in trace for n in s.decided),
         decided={n: sum(n in s.decided for s in trace) for n in macs},
         acted={n: sum(n in s.acted for s in trace) for n in macs},
+        contribution={n: float(sum(s.contributions.get(n, 0.0) for s in trace)) for n in macs},
     )
 
 
@@ -86,6 +93,7 @@ class Evaluation:
     steps: float
     decided: dict[str, float]
     acted: dict[str, float]
+    contribution: dict[str, float]  # mean |contribution| per step, averaged over action dimensions
 
     def row(self) -> dict[str, float]:
         """Flat columns for a CSV row."""
@@ -95,6 +103,7 @@ class Evaluation:
         }
         out |= {f"decided_{n}": v for n, v in self.decided.items()}
         out |= {f"acted_{n}": v for n, v in self.acted.items()}
+        out |= {f"contribution_{n}": v for n, v in self.contribution.items()}
         return out
 
 
@@ -113,4 +122,5 @@ def summarise(episodes: Sequence[EpisodeMeasures]) -> Evaluation:
         steps=float(np.mean([e.steps for e in episodes])),
         decided={n: sum(e.decided[n] for e in episodes) / total for n in names},
         acted={n: sum(e.acted[n] for e in episodes) / total for n in names},
+        contribution={n: sum(e.contribution[n] for e in episodes) / total for n in names},
     )

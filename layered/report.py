@@ -15,8 +15,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 
-def _activity(row: dict[str, Any], prefix: str) -> str:
-    return ", ".join(f"{k[len(prefix):]} {100 * v:.0f}%" for k, v in row.items() if k.startswith(prefix))
+def _activity(row: dict[str, Any], prefix: str, fmt: str = "{:.0%}") -> str:
+    return ", ".join(f"{k[len(prefix):]} {fmt.format(v)}" for k, v in row.items() if k.startswith(prefix))
 
 
 def _macs(value: float) -> str:
@@ -25,16 +25,16 @@ def _macs(value: float) -> str:
 
 def results_table(rows: Sequence[dict[str, Any]]) -> str:
     """Markdown table of per-phase (or per-evaluation) results rows as written to results.json."""
-    head = ("| phase | learns | present | return | AUC | action repetition | jerk | decisions / episode "
-            "| compute / episode | evaluated | acted |")
-    lines = [head, "|---" * (head.count("|") - 1) + "|"]
+    columns = ["phase", "learns", "present", "return", "AUC", "action repetition", "jerk", "decisions / episode",
+               "compute / episode", "evaluated", "acted", "mean \\|contribution\\|"]
+    lines = ["| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
     for r in rows:
         auc = "n/a" if r.get("auc") is None else f"{r['auc']:.3f}"
         lines.append(
             f"| {r.get('phase', '')} | {'+'.join(r.get('learn', []))} | {'+'.join(r.get('active', []))} "
             f"| {r['return_mean']:.1f} ± {r['return_std']:.1f} | {auc} | {100 * r['repetition']:.1f}% "
             f"| {r['jerk']:.3f} | {r['decisions']:.1f} of {r['episode_steps']:.0f} | {_macs(r['compute'])} "
-            f"| {_activity(r, 'decided_')} | {_activity(r, 'acted_')} |"
+            f"| {_activity(r, 'decided_')} | {_activity(r, 'acted_')} | {_activity(r, 'contribution_', '{:.3f}')} |"
         )
     return "\n".join(lines)
 

@@ -32,7 +32,9 @@ def test_jerk_is_the_mean_absolute_change_over_steps_and_dimensions():
 
 
 def steps(actions, rewards, decided, acted):
-    return [StepRecord(*row) for row in zip(actions, rewards, decided, acted, strict=True)]
+    """Steps where each layer in `acted` contributed 0.5 and the others, reached, contributed 0."""
+    contributions = [{n: 0.5 for n in a} for a in acted]
+    return [StepRecord(*row) for row in zip(actions, rewards, decided, contributions, strict=True)]
 
 
 def test_measure_episode_counts_decisions_compute_and_activity():
@@ -46,6 +48,7 @@ def test_measure_episode_counts_decisions_compute_and_activity():
     assert m.compute == 10 + 3 * 3
     assert m.decided == {"slow": 1, "fast": 3}
     assert m.acted == {"slow": 4, "fast": 1}
+    assert m.contribution == {"slow": 2.0, "fast": 0.5}
 
 
 def test_summarise_means_returns_and_pools_activity_over_steps():
@@ -56,3 +59,4 @@ def test_summarise_means_returns_and_pools_activity_over_steps():
     assert s.decisions == pytest.approx(2.5) and s.repetition == pytest.approx((0.5 + 0.75) / 2)
     assert s.compute == pytest.approx((7 + 28) / 2) and s.jerk == 0.0
     assert s.decided == {"x": pytest.approx(5 / 6)} and s.acted == {"x": pytest.approx(2 / 6)}
+    assert s.contribution == {"x": pytest.approx(2 * 0.5 / 6)}
