@@ -55,7 +55,7 @@ def load_run(path: Path) -> Run:
 
 @dataclass(frozen=True)
 class Setup:
-    """The runs of one (environment, setup label) pair, one per seed."""
+    """The runs of one (environment, method) pair, one per seed; the method is the recipe's name."""
 
     env: str
     label: str
@@ -82,11 +82,11 @@ class Setup:
 
 
 def group(runs: Iterable[Run]) -> list[Setup]:
-    """Runs grouped by (environment, label), in the paper's method order."""
+    """Runs grouped by (environment, method), in the paper's method order."""
     by_key: dict[tuple[str, str], list[Run]] = {}
     for run in runs:
-        by_key.setdefault((run.env, run.label), []).append(run)
-    setups = [Setup(env, label, tuple(sorted(rs, key=lambda r: r.seed))) for (env, label), rs in by_key.items()]
+        by_key.setdefault((run.env, run.method), []).append(run)
+    setups = [Setup(env, rs[0].label, tuple(sorted(rs, key=lambda r: r.seed))) for (env, _), rs in by_key.items()]
 
     def order(s: Setup) -> tuple[str, int, str]:
         rank = METHOD_ORDER.index(s.method) if s.method in METHOD_ORDER else len(METHOD_ORDER)
