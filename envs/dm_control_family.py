@@ -8,7 +8,7 @@ the end of an episode into `terminated` (discount 0) or `truncated` (the time li
 from __future__ import annotations
 
 import difflib
-from typing import Any, ClassVar
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -27,8 +27,6 @@ def _flatten(observation: dict[str, Any]) -> np.ndarray:
 class DmControlEnv(gym.Env[np.ndarray, np.ndarray]):
     """One dm_control suite task behind the Gymnasium API."""
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 50}
-
     def __init__(self, domain: str, task: str, render_mode: str | None = None,
                  width: int = 320, height: int = 240, camera_id: int = 0) -> None:
         from dm_control import suite
@@ -41,7 +39,7 @@ class DmControlEnv(gym.Env[np.ndarray, np.ndarray]):
         spec = self._env.action_spec()
         self.action_space = Box(spec.minimum.astype(np.float32), spec.maximum.astype(np.float32), dtype=np.float32)
         self.dt = float(self._env.control_timestep())
-        self.metadata = {**self.metadata, "render_fps": round(1 / self.dt)}
+        self.metadata = {"render_modes": ["rgb_array"], "render_fps": round(1 / self.dt)}
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         super().reset(seed=seed)

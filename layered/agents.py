@@ -44,7 +44,7 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self.trace: list[StepRecord] = []
         self.capture: str | None = None  # a layer: render the state whenever its contribution is non-zero
         self.frames: list[tuple[int, np.ndarray]] = []  # (step, rgb frame), at most MAX_FRAMES an episode
-        self._obs: np.ndarray = np.zeros(base.observation_space.shape, np.float32)
+        self._obs: np.ndarray = np.zeros(base.observation_space.shape or (0,), np.float32)
         self._decided: list[str] = []
         self.episode_return = 0.0
         self.episode_steps = 0
@@ -116,7 +116,7 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         if self.capture is not None and len(self.frames) < MAX_FRAMES:
             own = composition.contributions.get(self._index[self.capture])
             if own is not None and np.any(own != 0):
-                self.frames.append((self.episode_steps, self.base.render()))
+                self.frames.append((self.episode_steps, np.asarray(self.base.render())))
         self._obs, reward, terminated, truncated, _ = self.base.step(composition.action)
         for i, r in self.stack.layer_rewards(float(reward), composition).items():
             name = self.stack.layers[i].name

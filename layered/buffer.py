@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -73,7 +73,7 @@ class ReplayBuffer:
         stored = {key: torch.from_numpy(getattr(self, f"_{key}")[: self.size].copy()) for key in self.FIELDS}
         return {"size": self.size, "next": self._next, **stored}
 
-    def load_state_dict(self, state: dict[str, torch.Tensor | int]) -> None:
+    def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what `state_dict` returned."""
         self.size, self._next = int(state["size"]), int(state["next"])
         for key in self.FIELDS:

@@ -44,7 +44,7 @@ class CombineConfig(Section):
 
     kind: str = "residual-clip"
     """Combiner name: `residual-clip` or `gate` (or any registered one)."""
-    eval_threshold: float = Field(0.3, ge=0)
+    eval_threshold: float = Field(default=0.3, ge=0)
     """At evaluation, lower residual contributions whose effect is below this fraction of the
     maximum action are zeroed; 0 disables thresholding."""
     per_dimension: bool = False
@@ -56,30 +56,30 @@ class LayerConfig(Section):
 
     name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_-]*$")
     """Unique name, used in `sees`, in phases and as the agent's name."""
-    period: int | None = Field(None, gt=0)
+    period: int | None = Field(default=None, gt=0)
     """Base environment steps between decisions; must divide the period of the layer above."""
-    response_time: float | None = Field(None, gt=0)
+    response_time: float | None = Field(default=None, gt=0)
     """The period in seconds instead of steps; must be a whole number of the env's control timestep."""
-    delay: int = Field(0, ge=0)
+    delay: int = Field(default=0, ge=0)
     """Decisions between choosing an action and its taking effect (1: the real-time setting)."""
-    max_repeat: int = Field(1, ge=1)
+    max_repeat: int = Field(default=1, ge=1)
     """Above 1 the layer also chooses for how many of its periods (1..max_repeat) to hold its
     output before deciding again, as TempoRL's skip policy; its output gains that count."""
     sees: list[str] = ["obs"]
     """What the layer observes: `obs` and the names of slower layers whose held actions it sees."""
     combine: str | None = None
     """How this layer merges with the layers below; defaults to `combine.kind`."""
-    eval_threshold: float | None = Field(None, ge=0)
+    eval_threshold: float | None = Field(default=None, ge=0)
     """Overrides `combine.eval_threshold` for the layers below this one."""
-    action_scale: float = Field(1.0, gt=0)
+    action_scale: float = Field(default=1.0, gt=0)
     """The layer's action range as a multiple of the environment's (2 lets a residual cancel)."""
-    action_penalty: float = Field(0.0, ge=0)
+    action_penalty: float = Field(default=0.0, ge=0)
     """Reward penalty per step: this times the mean of |action| / the layer's action bound."""
     defer_reward_scale: tuple[float, float] = (2.0, 0.5)
     """Gate layers: factors on rewards r <= 0 and r > 0 earned while the layers below act."""
-    defer_penalty: float = Field(0.0, ge=0)
+    defer_penalty: float = Field(default=0.0, ge=0)
     """Gate layers: reward penalty per base step while the layers below act (p per step)."""
-    deviation_penalty: float = Field(0.0, ge=0)
+    deviation_penalty: float = Field(default=0.0, ge=0)
     """Reward penalty per step: this times mean |executed action - action proposed by the
     nearest deferring gate at or above this layer| / max action (j)."""
     learner: dict[str, Any] = {}
@@ -93,7 +93,7 @@ class PhaseConfig(Section):
     """Layers that learn in this phase."""
     active: list[str] | None = None
     """Layers present in this phase; default: `learn` plus every layer trained before."""
-    steps: int | None = Field(None, gt=0)
+    steps: int | None = Field(default=None, gt=0)
     """Base environment steps of this phase; default `train.steps_per_phase`."""
 
 
@@ -104,9 +104,9 @@ class TrainConfig(Section):
     """Training order: `slow-to-fast`, `fast-to-slow`, or `explicit` (with `phases`)."""
     phases: list[PhaseConfig] | None = None
     """Explicit phases; giving them selects the `explicit` order."""
-    steps_per_phase: int = Field(30_000, gt=0)
+    steps_per_phase: int = Field(default=30_000, gt=0)
     """Base environment steps per phase."""
-    warmup: int = Field(1000, ge=0)
+    warmup: int = Field(default=1000, ge=0)
     """Decisions of each learning layer taken uniformly at random before updates start."""
     discount: Literal["decision", "step"] = "decision"
     """`decision`: gamma per decision of a layer; `step`: gamma**k for a decision spanning k steps."""
@@ -124,9 +124,9 @@ class TrainConfig(Section):
 class EvalConfig(Section):
     """How the stack is evaluated during and after training."""
 
-    every: int = Field(5000, gt=0)
+    every: int = Field(default=5000, gt=0)
     """Base environment steps between evaluations within a phase."""
-    episodes: int = Field(10, gt=0)
+    episodes: int = Field(default=10, gt=0)
     """Deterministic episodes per evaluation."""
     seed_offset: int = 100
     """The evaluation environment is seeded with train.seed plus this offset."""

@@ -21,7 +21,7 @@ class LearnerConfig(BaseModel):
 
     kind: str
     """Registered name of the learner."""
-    gamma: float = Field(0.99, ge=0, le=1)
+    gamma: float = Field(default=0.99, ge=0, le=1)
     """Discount per decision of the layer (or per base step, see train.discount)."""
 
 

@@ -23,7 +23,7 @@ class GateTD3Config(TD3Config):
     """TD3 settings plus the gate's exploration."""
 
     kind: Literal["td3-gate"] = "td3-gate"  # type: ignore[assignment]
-    gate_epsilon: float = Field(0.1, ge=0, le=1)
+    gate_epsilon: float = Field(default=0.1, ge=0, le=1)
     """While exploring, the probability of a uniformly random gate choice."""
 
 

@@ -22,21 +22,21 @@ class TD3Config(LearnerConfig):
     kind: Literal["td3"] = "td3"
     hidden: tuple[int, ...] = (400, 300)
     """Hidden layer widths of the actor and of each critic."""
-    lr: float = Field(3e-4, gt=0)
+    lr: float = Field(default=3e-4, gt=0)
     """Adam learning rate of actor and critics."""
-    batch_size: int = Field(256, gt=0)
+    batch_size: int = Field(default=256, gt=0)
     """Transitions per gradient update."""
-    tau: float = Field(0.005, gt=0, le=1)
+    tau: float = Field(default=0.005, gt=0, le=1)
     """Polyak rate of the target networks."""
-    policy_noise: float = Field(0.2, ge=0)
+    policy_noise: float = Field(default=0.2, ge=0)
     """Std of target-policy smoothing noise, as a fraction of the action half-range."""
-    noise_clip: float = Field(0.5, ge=0)
+    noise_clip: float = Field(default=0.5, ge=0)
     """Clip of the smoothing noise, as a fraction of the action half-range."""
-    exploration_noise: float = Field(0.1, ge=0)
+    exploration_noise: float = Field(default=0.1, ge=0)
     """Std of Gaussian exploration noise, as a fraction of the action half-range."""
-    policy_delay: int = Field(2, gt=0)
+    policy_delay: int = Field(default=2, gt=0)
     """Critic updates per actor and target update."""
-    buffer_size: int = Field(1_000_000, gt=0)
+    buffer_size: int = Field(default=1_000_000, gt=0)
     """Replay capacity in transitions."""
 
 
@@ -52,6 +52,9 @@ def mlp(sizes: tuple[int, ...]) -> nn.Sequential:
 
 class Actor(nn.Module):
     """Deterministic policy squashed into the action box by tanh."""
+
+    centre: torch.Tensor
+    scale: torch.Tensor
 
     def __init__(self, obs_dim: int, low: np.ndarray, high: np.ndarray, hidden: tuple[int, ...]) -> None:
         super().__init__()

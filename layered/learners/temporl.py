@@ -23,7 +23,7 @@ class TempoRLConfig(TD3Config):
     """TD3 settings plus the skip policy's exploration."""
 
     kind: Literal["temporl"] = "temporl"  # type: ignore[assignment]
-    skip_epsilon: float = Field(0.1, ge=0, le=1)
+    skip_epsilon: float = Field(default=0.1, ge=0, le=1)
     """While exploring, the probability of a uniformly random repeat count."""
 
 
