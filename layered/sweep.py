@@ -48,13 +48,14 @@ def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequen
          max_steps: int | None = None, plugins: Sequence[str] = ()) -> list[Job]:
     """The jobs of a sweep; every recipe is validated first, so a bad one stops it before any run.
 
-    Run directories are `out/<recipe folder>/<recipe name>/seed<k>`.
+    Run directories are `out/<recipe folder>/<recipe name>/seed<k>`. Jobs are ordered seed by
+    seed, so a sweep cut short still has every recipe for its first seeds.
     """
     jobs = []
-    for source in recipes:
-        path = Path(source)
-        label = f"{path.parent.name}/{path.stem}"
-        for seed in range(seeds):
+    for seed in range(seeds):
+        for source in recipes:
+            path = Path(source)
+            label = f"{path.parent.name}/{path.stem}"
             recipe = load_recipe(path, [*overrides, f"train.seed={seed}"])
             run_dir = out / path.parent.name / path.stem / f"seed{seed}"
             job = Job(resolved(recipe), run_dir, label, max_steps, tuple(plugins))
