@@ -14,7 +14,7 @@ import tomli_w
 import torch
 from tqdm import tqdm
 
-from layered.agents import LayeredEnv, make_aec_env
+from layered.agents import make_aec_env
 from layered.buffer import Transition
 from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from layered.envs import env_info
@@ -42,8 +42,9 @@ def phases_of(recipe: Recipe) -> list[Phase]:
     return ORDERS.get(recipe.train.order)(recipe.layer_names(), recipe.train.phases or [])
 
 
-def build_learners(recipe: Recipe, env: LayeredEnv) -> dict[str, Learner]:
-    """One learner per layer, with its own seed; `env` must have every layer present."""
+def build_learners(recipe: Recipe) -> dict[str, Learner]:
+    """One new learner per layer, each with its own seed, on the spaces of the whole stack."""
+    env = make_aec_env(recipe)
     learners = {}
     for i, layer in enumerate(recipe.layers):
         config = learner_config(recipe, i)
@@ -51,14 +52,13 @@ def build_learners(recipe: Recipe, env: LayeredEnv) -> dict[str, Learner]:
         learners[layer.name] = LEARNERS.get(config.kind)(
             env.observation_space(layer.name), env.action_space(layer.name), config, seed
         )
+    env.close()
     return learners
 
 
 def load_learners(recipe: Recipe, run_dir: Path) -> dict[str, Learner]:
     """The learners of a finished run, restored from its checkpoints."""
-    env = make_aec_env(recipe)
-    learners = build_learners(recipe, env)
-    env.close()
+    learners = build_learners(recipe)
     for name, learner in learners.items():
         learner.load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}.pt", name))
     return learners
@@ -115,9 +115,7 @@ def train(
     if plugins:
         (out / "plugins.json").write_text(json.dumps(list(plugins)))
     torch.manual_seed(recipe.train.seed)
-    probe = make_aec_env(recipe)
-    learners = build_learners(recipe, probe)
-    probe.close()
+    learners = build_learners(recipe)
     run_state = out / "checkpoints" / "run.pt"
     rows: list[dict[str, Any]] = []
     if resume and run_state.exists():

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from conftest import stack_recipe
 
-from layered import load_recipe, make_aec_env
+from layered import load_recipe
 from layered.trainer import CsvLog, build_learners, phases_of, run_phase, train
 
 RECIPES = sorted((Path(__file__).parent.parent / "recipes").rglob("*.toml"))
@@ -101,7 +101,7 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
 def test_time_limit_truncation_bootstraps_and_termination_does_not(tmp_path):
     for env_id, terminates in (("Pendulum-v1", False), ("InvertedPendulum-v5", True)):
         recipe = load_recipe(stack_recipe([1], env=env_id).model_dump(), [*TINY, "train.warmup=1000"])
-        learners = build_learners(recipe, make_aec_env(recipe))
+        learners = build_learners(recipe)
         run_phase(recipe, 0, phases_of(recipe)[0], 450, learners, CsvLog(tmp_path / f"{env_id}.csv"),
                   CsvLog(tmp_path / f"{env_id}-ep.csv"), progress=False)
         buffer = learners["l0"].buffer
