@@ -1,4 +1,4 @@
-"""The `layered` command: train a recipe, evaluate a trained run."""
+"""The `layered` command: train a recipe, evaluate a run, sweep recipes over seeds, report."""
 
 from __future__ import annotations
 
@@ -28,6 +28,12 @@ def _thresholds(text: str) -> list[float]:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
 
 
+def _plugin_option(parser: argparse.ArgumentParser, note: str = "") -> None:
+    help_text = "import your own combiner, learner, order or env family first (repeatable)"
+    parser.add_argument("--plugin", action="append", default=[], metavar="FILE.py|MODULE",
+                        help=f"{help_text}{', ' + note if note else ''}")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="layered", description="Temporally layered control stacks.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -41,15 +47,13 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--seed", type=int, help="same as train.seed=S")
     tr.add_argument("--steps", type=int, help="cap every training phase at N environment steps")
     tr.add_argument("--threads", type=int, help="torch threads (use 1 per process when running several)")
-    tr.add_argument("--plugin", action="append", default=[], metavar="FILE.py|MODULE",
-                    help="import your own combiner, learner, order or env family first (repeatable)")
+    _plugin_option(tr)
     ev = sub.add_parser("eval", help="evaluate a trained run directory")
     ev.add_argument("run_dir", type=Path)
     ev.add_argument("--episodes", type=int, help="episodes (default: the recipe's eval.episodes)")
     ev.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--threads", type=int, help="torch threads")
-    ev.add_argument("--plugin", action="append", default=[], metavar="FILE.py|MODULE",
-                    help="plugins to import besides those the run was trained with")
+    _plugin_option(ev, "besides those the run was trained with")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
     ev.add_argument("--threshold-sweep", type=_thresholds, nargs="?", const=DEFAULT_SWEEP, metavar="X,Y,...",
                     help="evaluate at each threshold (default 0, 0.1, ..., 1) and plot return and action frequency")
@@ -68,8 +72,7 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--backend", choices=["local", "ray"], default="local",
                     help="local processes (default) or Ray tasks (needs the extra layered[ray])")
     sw.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
-    sw.add_argument("--plugin", action="append", default=[], metavar="FILE.py|MODULE",
-                    help="import your own combiner, learner, order or env family first (repeatable)")
+    _plugin_option(sw)
     rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
     rep.add_argument("runs", type=Path, nargs="+", help="run directories, or folders that hold them")
     rep.add_argument("--out", type=Path, help="report directory (default runs/report-<time>)")
