@@ -60,3 +60,20 @@ def test_report_of_nothing_is_a_clear_error(tmp_path):
     command = [sys.executable, "-m", "layered.cli", "report", str(tmp_path)]
     proc = subprocess.run(command, capture_output=True, text=True)
     assert proc.returncode == 2 and "no finished runs" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_real_time_runs_get_the_layout_of_table_3(tmp_path):
+    from layered.report import write_report
+
+    curve = [(0, 100.0), (5000, 3000.0)]
+    setups = group([
+        run("hopper/td3-realtime", 0, 3000.0, 0.4, curve, env="Hopper-v5", realtime=True),
+        run("hopper/td3-realtime", 1, 3100.0, 0.5, curve, env="Hopper-v5", realtime=True),
+        run("hopper/tla-realtime", 0, 3400.0, 0.6, curve, env="Hopper-v5", realtime=True),
+        run("pendulum/td3", 0, -150.0, 0.8, [(0, -1000.0), (10, -150.0)]),
+    ])
+    text = write_report(setups, tmp_path)
+    table3 = text.split("## Table 3")[1].split("##")[0]
+    assert "| Hopper-v5 | 0.450 ± 0.050 | 0.600 ± 0.000 | 3050.0 ± 50.0 | 3400.0 ± 0.0 |" in table3
+    assert "Pendulum-v1" not in table3 and "Pendulum-v1" in text.split("## Table 1")[1]
+    assert (tmp_path / "curves.png").stat().st_size > 0
