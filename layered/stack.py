@@ -34,10 +34,6 @@ class Layer:
     delay: int  # decisions between choosing an output and its taking effect
     max_repeat: int  # > 1: the output's last entry says for how many periods to hold it
 
-    @property
-    def is_gate(self) -> bool:
-        return self.combiner.gate_dims > 0
-
     def repeats(self, output: np.ndarray) -> int:
         """For how many of its periods the layer holds `output` before deciding again."""
         return int(np.clip(np.rint(output[-1]), 1, self.max_repeat)) if self.max_repeat > 1 else 1

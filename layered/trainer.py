@@ -19,7 +19,7 @@ from layered.buffer import Transition
 from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from layered.envs import env_info
 from layered.evaluate import evaluate
-from layered.learners import LEARNERS, Learner
+from layered.learners import LEARNERS, Learner, UpdateStats
 from layered.metrics import Evaluation, normalised_auc
 from layered.orders import ORDERS, Phase
 from layered.recipe import Recipe, learner_config, resolved
@@ -172,10 +172,13 @@ def run_phase(
     decisions = dict.fromkeys(phase.learn, 0)
     curve: list[tuple[int, Evaluation]] = []
 
+    losses: dict[str, list[UpdateStats]] = {name: [] for name in phase.learn}
+
     def evaluate_now(step: int) -> None:
         result = evaluate(eval_env, learners, recipe.eval.episodes, eval_seed)
         curve.append((step, result))
-        metrics.write({"phase": index, "learn": "+".join(phase.learn), "step": step, **result.row()})
+        metrics.write({"phase": index, "learn": "+".join(phase.learn), "step": step, **result.row(),
+                       **_mean_losses(losses)})
         bar.set_postfix_str(f"eval return {result.return_mean:.1f}")
 
     bar = tqdm(total=budget, desc=f"phase {index + 1}: {'+'.join(phase.learn)}", unit="step",
@@ -209,8 +212,8 @@ def run_phase(
             env.step(action)
             if learns:
                 decisions[name] += 1
-                if decisions[name] > recipe.train.warmup:
-                    learner.update()
+                if decisions[name] > recipe.train.warmup and (stats := learner.update()) is not None:
+                    losses[name].append(stats)
             advanced = env.episode_steps - before
             steps += advanced
             bar.update(advanced)
@@ -226,6 +229,17 @@ def run_phase(
     env.close()
     eval_env.close()
     return PhaseResult(index, phase, steps, curve[-1][1], _auc(recipe, curve))
+
+
+def _mean_losses(losses: dict[str, list[UpdateStats]]) -> dict[str, float]:
+    """Mean critic and actor loss of each learning layer since the last call (NaN if none); clears them."""
+    out = {}
+    for name, stats in losses.items():
+        actor = [s.actor_loss for s in stats if s.actor_loss is not None]
+        out[f"critic_loss_{name}"] = float(np.mean([s.critic_loss for s in stats])) if stats else float("nan")
+        out[f"actor_loss_{name}"] = float(np.mean(actor)) if actor else float("nan")
+        stats.clear()
+    return out
 
 
 def _auc(recipe: Recipe, curve: list[tuple[int, Evaluation]]) -> float | None:
