@@ -81,7 +81,6 @@ class Stack:
         if not isinstance(action_space, Box) or not isinstance(obs_space, Box):
             raise TypeError("layers need Box observation and action spaces")
         names = recipe.layer_names()
-        self.env_action_space = action_space
         self.action_dim = int(action_space.shape[0])
         self.low = action_space.low.astype(np.float32)
         self.high = action_space.high.astype(np.float32)
