@@ -75,7 +75,7 @@ def measure_episode(trace: Sequence[StepRecord], macs: dict[str, int]) -> Episod
         decisions=sum(1 for s in trace if s.decided),
         compute=sum(macs[n] for s in trace for n in s.decided),
         decided={n: sum(n in s.decided for s in trace) for n in macs},
-        acted={n: sum(n in s.acted for s in trace) for n in macs},
+        acted={n: sum(s.contributions.get(n, 0.0) > 0 for s in trace) for n in macs},
         contribution={n: float(sum(s.contributions.get(n, 0.0) for s in trace)) for n in macs},
     )
 

@@ -208,8 +208,8 @@ class Stack:
                 r = r * (negative if r <= 0 else positive) - layer.defer_penalty
             if i in composition.contributions:
                 r -= layer.action_penalty * float(np.mean(np.abs(composition.contributions[i]) / layer.half_range))
-                gates = [k for k in deferring if k <= i]
-                if layer.deviation_penalty and gates:
+                gates = [k for k in deferring if k <= i] if layer.deviation_penalty else []
+                if gates:
                     proposed = self.held[gates[-1]][: self.action_dim]
                     deviation = float(np.mean(np.abs(composition.action - proposed) / self.env_half))
                     r -= layer.deviation_penalty * deviation

@@ -76,8 +76,9 @@ class Setup:
 
     def curve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Steps, mean and std over seeds of the evaluation return, on the steps all runs share."""
-        common = sorted(set.intersection(*(set(dict(r.curve)) for r in self.runs)))
-        values = np.array([[dict(r.curve)[s] for s in common] for r in self.runs], np.float64)
+        curves = [dict(r.curve) for r in self.runs]
+        common = sorted(set.intersection(*(set(c) for c in curves)))
+        values = np.array([[c[s] for s in common] for c in curves], np.float64)
         return np.array(common), values.mean(axis=0), values.std(axis=0)
 
 
