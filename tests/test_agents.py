@@ -8,11 +8,11 @@ from pettingzoo.test import api_test
 
 from layered import make_aec_env
 
-DEPTHS = {1: [1], 2: [4, 1], 3: [4, 2, 1]}
+DEPTHS = {1: [1], 2: [4, 1], 3: [4, 2, 1], 4: [8, 4, 2, 1]}
 
 
 @pytest.mark.parametrize("kind", ["residual-clip", "gate"])
-@pytest.mark.parametrize("depth", [1, 2, 3])
+@pytest.mark.parametrize("depth", [1, 2, 3, 4])
 def test_pettingzoo_api(depth, kind):
     env = make_aec_env(stack_recipe(DEPTHS[depth], kind), seed=0)
     api_test(env, num_cycles=300)

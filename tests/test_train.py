@@ -50,6 +50,15 @@ def test_three_layer_stacks_train_and_report_every_metric(kinds, order, tmp_path
     assert results["phases"][-1]["active"] == ["l0", "l1", "l2"]
 
 
+@pytest.mark.parametrize("order", ["slow-to-fast", "fast-to-slow", "joint"])
+def test_four_layer_mixed_stack_trains_in_every_order(order, tmp_path):
+    kinds = ["gate", "residual-clip", "gate", "residual-clip"]
+    recipe = load_recipe(stack_recipe([8, 4, 2, 1], kinds).model_dump(), [*TINY, f"train.order={order}"])
+    train(recipe, tmp_path, max_steps=200, progress=False)
+    results = check_run(tmp_path, 1 if order == "joint" else 4, ["l0", "l1", "l2", "l3"])
+    assert results["phases"][-1]["active"] == ["l0", "l1", "l2", "l3"]
+
+
 def test_explicit_phases_with_two_layers_learning_at_once(tmp_path):
     data = stack_recipe([4, 1], "gate").model_dump()
     data["train"] = {"phases": [{"learn": ["l1"]}, {"learn": ["l0", "l1"], "steps": 150}]}
