@@ -10,6 +10,8 @@ import contextlib
 import multiprocessing
 import os
 import sys
+import threading
+import time
 import tomllib
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -98,7 +100,7 @@ def run_local(jobs: Sequence[Job], workers: int) -> list[Outcome]:
     outcomes = []
     bar = tqdm(total=len(jobs), desc="sweep", unit="run", file=sys.stderr)
     context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state forked
-    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_one_thread) as pool:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_init_worker, initargs=(os.getpid(),)) as pool:
         futures = [pool.submit(run_job, job) for job in jobs]
         for future in as_completed(futures):
             outcome = future.result()
@@ -109,8 +111,20 @@ def run_local(jobs: Sequence[Job], workers: int) -> list[Outcome]:
     return outcomes
 
 
-def _one_thread() -> None:
+def _init_worker(sweep_pid: int) -> None:
+    """One torch thread per worker; and the worker ends when the sweep process is gone.
+
+    Without the watch, killing the sweep (not its process group) would leave workers training
+    on in the background, writing into run directories nobody is waiting for.
+    """
     os.environ["OMP_NUM_THREADS"] = "1"
+    threading.Thread(target=_exit_when_orphaned, args=(sweep_pid,), daemon=True).start()
+
+
+def _exit_when_orphaned(sweep_pid: int, every: float = 1.0) -> None:
+    while os.getppid() == sweep_pid:
+        time.sleep(every)
+    os._exit(1)  # checkpoints are written atomically, so a run stopped here resumes cleanly
 
 
 def _pack(run_dir: Path) -> dict[str, bytes]:
