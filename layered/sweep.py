@@ -100,9 +100,8 @@ def run_local(jobs: Sequence[Job], workers: int) -> list[Outcome]:
     outcomes = []
     bar = tqdm(total=len(jobs), desc="sweep", unit="run", file=sys.stderr)
     context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state forked
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context,
-                               initializer=_init_worker, initargs=(os.getpid(),))
-    with pool:
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context,
+                             initializer=_init_worker, initargs=(os.getpid(),)) as pool:
         futures = [pool.submit(run_job, job) for job in jobs]
         for future in as_completed(futures):
             outcome = future.result()
