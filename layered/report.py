@@ -132,19 +132,25 @@ def seeds_table(setups: Sequence[Any]) -> str:
 
 
 def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
-    """Learning curves of the last phase per environment: mean over seeds with a ±1 std band."""
+    """Learning curves per environment, mean over seeds with a ±1 std band: over the last phase
+    (what the AUC measures) and, when a setup trains in several phases, over the whole run, so
+    that setups can be compared at the same number of environment steps."""
     envs = list(dict.fromkeys(s.env for s in setups))
-    fig, axes = plt.subplots(1, len(envs), figsize=(5.5 * len(envs), 4), squeeze=False, constrained_layout=True)
-    for ax, env in zip(axes[0], envs, strict=True):
-        for s in (s for s in setups if s.env == env):
-            steps, mean, std = s.curve()
-            line, = ax.plot(steps, mean, label=f"{s.method} ({len(s.runs)} seeds)")
-            ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-        ax.set_title(env)
-        ax.set_xlabel("environment steps (last phase)")
-        ax.set_ylabel("evaluation return")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize="small")
+    phased = any(len(r.total_curve) > len(r.curve) for s in setups for r in s.runs)
+    views = [(False, "environment steps (last phase)"), (True, "environment steps (whole run)")][: 1 + phased]
+    fig, axes = plt.subplots(len(views), len(envs), figsize=(5.5 * len(envs), 4 * len(views)), squeeze=False,
+                             constrained_layout=True)
+    for row, (whole_run, xlabel) in zip(axes, views, strict=True):
+        for ax, env in zip(row, envs, strict=True):
+            for s in (s for s in setups if s.env == env):
+                steps, mean, std = s.curve(whole_run)
+                line, = ax.plot(steps, mean, label=f"{s.method} ({len(s.runs)} seeds)")
+                ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+            ax.set_title(env)
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel("evaluation return")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize="small")
     fig.savefig(out_png, dpi=120)
     plt.close(fig)
 

@@ -18,7 +18,8 @@ METHOD_ORDER = ["td3", "temporl", "tla-o", "tla-c", "td3-realtime", "tla-realtim
 
 @dataclass(frozen=True)
 class Run:
-    """One finished run: its setup, seed, final evaluation and last phase's evaluation curve."""
+    """One finished run: its setup, seed, final evaluation, and its evaluation curves over the last
+    phase and over the whole run (environment steps counted from the start of training)."""
 
     path: Path
     env: str
@@ -27,6 +28,7 @@ class Run:
     realtime: bool
     final: dict[str, float]
     curve: tuple[tuple[int, float], ...]
+    total_curve: tuple[tuple[int, float], ...] = ()
 
     @property
     def method(self) -> str:
@@ -43,14 +45,29 @@ def load_run(path: Path) -> Run:
     final = results["phases"][-1]
     last_phase = str(final["phase"])
     with (path / "metrics.csv").open() as f:
-        curve = tuple((int(r["step"]), float(r["return_mean"])) for r in csv.DictReader(f) if r["phase"] == last_phase)
+        rows = list(csv.DictReader(f))
+    curve = tuple((int(r["step"]), float(r["return_mean"])) for r in rows if r["phase"] == last_phase)
     label = results.get("label") or re.sub(r"-s\d+(-\d{8}-\d{6})?$", "", path.name)
     return Run(
         path=path, env=results["env"], label=label, seed=int(results.get("seed", recipe["train"]["seed"])),
         realtime=any(layer.get("delay", 0) > 0 for layer in recipe["layers"]),
         final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)},
-        curve=curve,
+        curve=curve, total_curve=_total_curve(rows),
     )
+
+
+def _total_curve(rows: Sequence[dict[str, str]]) -> tuple[tuple[int, float], ...]:
+    """Evaluation return against environment steps since training began, phases laid end to end.
+
+    A later phase's first evaluation is dropped: it falls on the step where the previous phase
+    ended, and the curve shows the stack as trained at each step."""
+    points: list[tuple[int, float]] = []
+    offset = 0
+    for phase in dict.fromkeys(r["phase"] for r in rows):
+        steps = [(int(r["step"]), float(r["return_mean"])) for r in rows if r["phase"] == phase]
+        points += [(offset + s, v) for s, v in steps if not (points and s == 0)]
+        offset += max(s for s, _ in steps)
+    return tuple(points)
 
 
 @dataclass(frozen=True)
@@ -74,12 +91,16 @@ class Setup:
         values = np.array([r.final.get(key, np.nan) for r in self.runs], np.float64)
         return float(np.mean(values)), float(np.std(values))
 
-    def curve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Steps, mean and std over seeds of the evaluation return, on the steps all runs share."""
-        curves = [dict(r.curve) for r in self.runs]
-        common = sorted(set.intersection(*(set(c) for c in curves)))
-        values = np.array([[c[s] for s in common] for c in curves], np.float64)
-        return np.array(common), values.mean(axis=0), values.std(axis=0)
+    def curve(self, whole_run: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Steps, mean and std over seeds of the evaluation return, over the last phase or the whole run.
+
+        Runs are aligned evaluation by evaluation, up to the fewest any run made, at the mean of their
+        steps: a slow layer evaluates on its first decision after the schedule, a step or two apart
+        between seeds."""
+        curves = [r.total_curve if whole_run else r.curve for r in self.runs]
+        n = min(len(c) for c in curves)
+        points = np.array([c[:n] for c in curves], np.float64).reshape(len(curves), n, 2)
+        return points[:, :, 0].mean(axis=0), points[:, :, 1].mean(axis=0), points[:, :, 1].std(axis=0)
 
 
 def group(runs: Iterable[Run]) -> list[Setup]:

@@ -25,9 +25,30 @@ def test_setup_statistics_are_mean_and_population_std_over_seeds():
                                               run("pendulum/td3", 1, -300.0, 0.7, [(0, -1200), (10, -300), (20, 0)])))
     assert s.stat("return_mean") == pytest.approx((-200.0, 100.0))
     assert s.stat("auc") == pytest.approx((0.6, 0.1))
-    steps, mean, std = s.curve()  # only the steps both runs evaluated
+    steps, mean, std = s.curve()  # only the evaluations both runs made
     assert list(steps) == [0, 10] and list(mean) == [-1100, -200] and list(std) == [100, 100]
     assert s.method == "td3"
+
+
+def test_whole_run_curve_lays_phases_end_to_end(tmp_path):
+    (tmp_path / "results.json").write_text(json.dumps({"env": "Pendulum-v1", "seed": 0, "label": "p/tla-c",
+                                                        "phases": [{"phase": 1, "return_mean": -150.0}]}))
+    (tmp_path / "recipe.toml").write_text('[train]\nseed = 0\n[[layers]]\nname = "slow"\n')
+    (tmp_path / "metrics.csv").write_text("phase,step,return_mean\n0,0,-900\n0,5001,-400\n0,10002,-200\n"
+                                          "1,0,-300\n1,5000,-160\n1,10000,-150\n")
+    run_ = find_runs([tmp_path])[0]
+    assert run_.curve == ((0, -300.0), (5000, -160.0), (10000, -150.0))
+    # the fast phase's first evaluation (-300, at the slow phase's end) is dropped; its steps follow 10002
+    assert run_.total_curve == ((0, -900.0), (5001, -400.0), (10002, -200.0), (15002, -160.0), (20002, -150.0))
+
+
+def test_seeds_align_evaluation_by_evaluation_at_their_mean_step():
+    a = run("p/tla-c", 0, 0, 0, [])
+    s = Setup("Pendulum-v1", "p/tla-c", (
+        Run(a.path, a.env, a.label, 0, False, a.final, (), ((0, -900.0), (5001, -400.0), (10002, -200.0))),
+        Run(a.path, a.env, a.label, 1, False, a.final, (), ((0, -700.0), (5003, -200.0)))))
+    steps, mean, std = s.curve(whole_run=True)
+    assert list(steps) == [0, 5002] and list(mean) == [-800, -300] and list(std) == [100, 100]
 
 
 def test_grouping_orders_methods_as_the_paper():
