@@ -13,6 +13,7 @@ import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+from matplotlib.ticker import EngFormatter
 
 
 def _activity(row: dict[str, Any], prefix: str, fmt: str = "{:.0%}") -> str:
@@ -39,6 +40,12 @@ def results_table(rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _steps_axis(ax: Any, label: str) -> None:
+    """Label an axis of environment steps, with ticks as 50k, 1M so that long runs stay legible."""
+    ax.set_xlabel(label)
+    ax.xaxis.set_major_formatter(EngFormatter(sep=""))
+
+
 def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
     """Evaluation return against base steps, one line per phase, with ±1 std over episodes."""
     with metrics_csv.open() as f:
@@ -52,7 +59,7 @@ def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
         line, = ax.plot(x, y, marker="o", ms=3, label=f"phase {int(phase) + 1}: {sel[0]['learn']} learns")
         ax.fill_between(x, [a - b for a, b in zip(y, s, strict=True)], [a + b for a, b in zip(y, s, strict=True)],
                         color=line.get_color(), alpha=0.2)
-    ax.set_xlabel("environment steps in phase")
+    _steps_axis(ax, "environment steps in phase")
     ax.set_ylabel("evaluation return")
     ax.set_title(title)
     ax.grid(alpha=0.3)
@@ -147,7 +154,7 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
                 line, = ax.plot(steps, mean, label=f"{s.method} ({len(s.runs)} seeds)")
                 ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
             ax.set_title(env)
-            ax.set_xlabel(xlabel)
+            _steps_axis(ax, xlabel)
             ax.set_ylabel("evaluation return")
             ax.grid(alpha=0.3)
             ax.legend(fontsize="small")

@@ -5,9 +5,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import pytest
 
 from layered import load_recipe
+from layered.report import _steps_axis
 from layered.summary import Run, Setup, find_runs, group
 from layered.trainer import train
 
@@ -98,3 +100,12 @@ def test_real_time_runs_get_the_layout_of_table_3(tmp_path):
     assert "| Hopper-v5 | 0.450 ± 0.050 | 0.600 ± 0.000 | 3050.0 ± 50.0 | 3400.0 ± 0.0 |" in table3
     assert "Pendulum-v1" not in table3 and "Pendulum-v1" in text.split("## Table 1")[1]
     assert (tmp_path / "curves.png").stat().st_size > 0
+
+
+def test_step_axes_read_as_thousands_and_millions():
+    fig, ax = plt.subplots()
+    _steps_axis(ax, "environment steps")
+    fmt = ax.xaxis.get_major_formatter()
+    assert [fmt(v) for v in (0, 500, 125_000, 1_000_000)] == ["0", "500", "125k", "1M"]
+    assert ax.get_xlabel() == "environment steps"
+    plt.close(fig)
