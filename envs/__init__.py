@@ -9,6 +9,19 @@ if "DISPLAY" not in os.environ:  # headless: MuJoCo renders through EGL, pygame 
 from layered.envs import dm_control_family as _dm_control_family  # noqa: F401  (registers "dmc")
 from layered.envs import gymnasium_family as _gymnasium_family  # noqa: F401  (registers "gym")
 from layered.envs import robotics_family as _robotics_family  # noqa: F401  (registers "robotics")
-from layered.envs.registry import FAMILIES, EnvFamily, EnvInfo, control_timestep, env_info, make_env, split_id
+from layered.envs.registry import (
+    FAMILIES,
+    EnvFamily,
+    EnvInfo,
+    EnvSpaces,
+    control_timestep,
+    env_info,
+    env_spaces,
+    make_env,
+    split_id,
+)
 
-__all__ = ["FAMILIES", "EnvFamily", "EnvInfo", "control_timestep", "env_info", "make_env", "split_id"]
+__all__ = [
+    "FAMILIES", "EnvFamily", "EnvInfo", "EnvSpaces", "control_timestep", "env_info", "env_spaces", "make_env",
+    "split_id",
+]

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import gymnasium as gym
+import numpy as np
+from gymnasium.spaces import Box, Space
 
 from layered.registry import Registry
 
@@ -24,7 +27,7 @@ class EnvFamily(ABC):
 
     @abstractmethod
     def make(self, name: str, render_mode: str | None = None) -> gym.Env:
-        """A new Gymnasium env for `name`, with a Box action space and time limit as truncation."""
+        """A new Gymnasium env for `name`, its time limit reported as truncation."""
 
     @abstractmethod
     def info(self, name: str) -> EnvInfo:
@@ -51,15 +54,41 @@ def make_env(env_id: str, render_mode: str | None = None) -> gym.Env:
     return FAMILIES.get(family)().make(name, render_mode=render_mode)
 
 
-def control_timestep(env_id: str) -> float | None:
-    """Seconds of one base step of a recipe id's environment, or None if it defines none."""
+@dataclass(frozen=True)
+class EnvSpaces:
+    """An environment's spaces and base-step duration, read once from a made instance."""
+
+    observation_space: Space
+    action_space: Space
+    timestep: float | None
+
+    def problem(self) -> str | None:
+        """Why layers cannot control this environment (they need flat Box spaces with finite action bounds)."""
+        obs, act = self.observation_space, self.action_space
+        if not isinstance(act, Box):
+            return f"its action space is {type(act).__name__}; layers need a continuous Box"
+        if len(act.shape) != 1 or not (np.all(np.isfinite(act.low)) and np.all(np.isfinite(act.high))):
+            return f"its action space {act} is not a vector with finite bounds"
+        if not isinstance(obs, Box):
+            return f"its observation space is {type(obs).__name__}; layers need a Box"
+        return None
+
+
+@functools.cache
+def env_spaces(env_id: str) -> EnvSpaces:
+    """The spaces and timestep of a recipe id's environment (made once per process, then closed)."""
     family, name = split_id(env_id)
     source = FAMILIES.get(family)()
     env = source.make(name)
     try:
-        return source.timestep(env)
+        return EnvSpaces(env.observation_space, env.action_space, source.timestep(env))
     finally:
         env.close()
+
+
+def control_timestep(env_id: str) -> float | None:
+    """Seconds of one base step of a recipe id's environment, or None if it defines none."""
+    return env_spaces(env_id).timestep
 
 
 def env_info(env_id: str) -> EnvInfo:

@@ -1,8 +1,9 @@
 """The agent view: a PettingZoo AEC env in which each layer of a stack is an agent.
 
 `agent_iter()` yields a layer only when it is due; `last()` gives it its own observation, the
-shaped reward accumulated since its last decision and, in `info["elapsed"]`, the base steps
-that decision spanned. This env is the reference semantics the trainer drives directly.
+shaped reward accumulated since its last decision and, in `info["transition"]`, that decision's
+completed transition with its discount (`info["elapsed"]`: the base steps it spanned). This env
+is the reference semantics the trainer drives directly.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self._decided: list[str] = []
         self.episode_return = 0.0
         self.episode_steps = 0
+        self.advanced = 0  # base steps executed by the latest `step` call
 
     def observation_space(self, agent: str) -> Box:
         return self._observation_spaces[agent]
@@ -65,12 +67,13 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self._cumulative_rewards = dict.fromkeys(self.agents, 0.0)
         self.terminations = dict.fromkeys(self.agents, False)
         self.truncations = dict.fromkeys(self.agents, False)
-        self.infos = {a: self._fresh_info(self._index[a]) for a in self.agents}
+        self.infos: dict[str, dict[str, Any]] = {a: {} for a in self.agents}
         self._decided = []
         self.trace = []
         self.frames = []
         self.episode_return = 0.0
         self.episode_steps = 0
+        self.advanced = 0
         first = self.stack.next_due(0)
         assert first is not None, "every present layer decides at step 0"
         self.agent_selection = self.stack.layers[first].name
@@ -87,28 +90,35 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
             raise ValueError(f"layer {agent!r} is due and must be given an action, not None")
         i = self._index[agent]
         self._cumulative_rewards[agent] = 0.0
-        self.infos[agent] = self._fresh_info(i)
+        self.infos[agent] = {}
         self.rewards = dict.fromkeys(self.agents, 0.0)
-        self.stack.hold(i, action)
+        self.stack.decide(i, self.observe(agent), action)
         self._decided.append(agent)
+        self.advanced = 0
         due = self.stack.next_due(i + 1)
         ended = False
         while due is None and not ended:
             ended = self._base_step()
+            self.advanced += 1
             due = None if ended else self.stack.next_due(0)
+        self._accumulate_rewards()
         if ended:
+            for name in self.agents:
+                self._complete(name)
             self.agent_selection = self.agents[0]
         else:
             assert due is not None
             self.agent_selection = self.stack.layers[due].name
-        self._accumulate_rewards()
+            self._complete(self.agent_selection)
 
-    def _fresh_info(self, i: int) -> dict[str, Any]:
-        """A layer's info right after it decides. A layer that may repeat its output also gets
-        `path`: (observation, reward) at the end of each of its periods while it holds it."""
-        if self.stack.layers[i].max_repeat > 1:
-            return {"elapsed": 0, "path": [], "period_reward": 0.0}
-        return {"elapsed": 0}
+    def _complete(self, agent: str) -> None:
+        """It is `agent`'s turn: hand it the transition completed since its latest decision."""
+        i = self._index[agent]
+        decision = self.stack.decisions[i]
+        if decision is not None:  # None: the layer has not decided yet this episode
+            transition = self.stack.transition(i, self._cumulative_rewards[agent], self.observe(agent),
+                                               self.terminations[agent])
+            self.infos[agent] = {"elapsed": decision.elapsed, "transition": transition}
 
     def _base_step(self) -> bool:
         """Execute the composed action for one base step; True when the episode ended."""
@@ -118,16 +128,10 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
             if own is not None and np.any(own != 0):
                 self.frames.append((self.episode_steps, np.asarray(self.base.render())))
         self._obs, reward, terminated, truncated, _ = self.base.step(composition.action)
-        for i, r in self.stack.layer_rewards(float(reward), composition).items():
-            name = self.stack.layers[i].name
-            self.rewards[name] += r
-            info = self.infos[name]
-            info["elapsed"] += 1
-            if "path" in info:
-                info["period_reward"] += r
-                if (self.stack.t + 1) % self.stack.layers[i].period == 0 or terminated or truncated:
-                    info["path"].append((self.stack.observation(i, self._obs), info["period_reward"]))
-                    info["period_reward"] = 0.0
+        rewards = self.stack.layer_rewards(float(reward), composition)
+        for i, r in rewards.items():
+            self.rewards[self.stack.layers[i].name] += r
+        self.stack.record(rewards, self._obs, ended=terminated or truncated)
         if self.record:
             sizes = {self.stack.layers[i].name: float(np.mean(np.abs(c))) for i, c in composition.contributions.items()}
             self.trace.append(StepRecord(composition.action, float(reward), tuple(self._decided), sizes))

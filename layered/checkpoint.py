@@ -1,29 +1,58 @@
-"""Checkpoints of layers: tensors plus a format version, written atomically, loaded weights-only."""
+"""Checkpoints: tensors plus a format version, written atomically, loaded weights-only.
+
+A run's training state keeps its previous checkpoint beside the newest, so a checkpoint that
+turns out unreadable costs one checkpoint interval, not the run.
+"""
 
 from __future__ import annotations
 
 import os
 import pickle
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 class CheckpointError(RuntimeError):
     """A checkpoint that is missing, corrupted or of another format version."""
 
 
-def save_checkpoint(path: Path, layer: str, state: dict[str, Any]) -> None:
-    """Write one layer's learner state to `path`; a crash mid-write leaves any old file intact."""
+def previous(path: Path) -> Path:
+    """Where the checkpoint before `path`'s newest one is kept."""
+    return path.with_name(f"{path.stem}.prev{path.suffix}")
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Write a text file so that it is either wholly the old or wholly the new content."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_checkpoint(path: Path, layer: str, state: dict[str, Any], keep_previous: bool = False) -> None:
+    """Write `state` (of `layer`, or `run`) to `path`; a crash mid-write leaves the old file intact.
+
+    With `keep_previous` the file it replaces is kept as `previous(path)`.
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     try:
         with os.fdopen(fd, "wb") as f:
             torch.save({"format_version": FORMAT_VERSION, "layer": layer, "state": state}, f)
+            f.flush()
+            os.fsync(f.fileno())
+        if keep_previous and path.exists():
+            os.replace(path, previous(path))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -36,8 +65,33 @@ def load_checkpoint(path: Path, layer: str) -> dict[str, Any]:
         raise CheckpointError(f"{path}: no checkpoint for layer {layer!r}")
     try:
         data = torch.load(path, weights_only=True)
-    except (RuntimeError, EOFError, pickle.UnpicklingError, ValueError) as e:
+    except (RuntimeError, EOFError, pickle.UnpicklingError, ValueError, OSError) as e:
         raise CheckpointError(f"{path}: not a readable checkpoint ({e.__class__.__name__}: {e})") from None
-    if not isinstance(data, dict) or data.get("format_version") != FORMAT_VERSION or data.get("layer") != layer:
-        raise CheckpointError(f"{path}: not a format-{FORMAT_VERSION} checkpoint of layer {layer!r}")
+    if not isinstance(data, dict) or data.get("layer") != layer:
+        raise CheckpointError(f"{path}: not a checkpoint of {layer!r}")
+    if data.get("format_version") != FORMAT_VERSION:
+        raise CheckpointError(f"{path}: written in checkpoint format {data.get('format_version')}, this layered "
+                              f"reads format {FORMAT_VERSION}")
     return data["state"]
+
+
+def load_latest(path: Path, layer: str) -> dict[str, Any] | None:
+    """The newest readable state of `path` or, failing that, of `previous(path)`; None if neither
+    exists. Unfinished temporary files of an interrupted write are removed."""
+    for stale in path.parent.glob(f".{path.name}.*"):
+        stale.unlink(missing_ok=True)
+    problems = []
+    for candidate in (path, previous(path)):
+        if not candidate.exists():
+            continue
+        try:
+            state = load_checkpoint(candidate, layer)
+        except CheckpointError as e:
+            problems.append(str(e))
+            continue
+        if problems:
+            print(f"layered: warning: {problems[0]}; using the previous checkpoint {candidate.name}", file=sys.stderr)
+        return state
+    if problems:
+        raise CheckpointError("; ".join(problems) + "; no usable checkpoint is left")
+    return None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -95,16 +96,23 @@ class Evaluation:
     acted: dict[str, float]
     contribution: dict[str, float]  # mean |contribution| per step, averaged over action dimensions
 
+    PER_LAYER: ClassVar[tuple[str, ...]] = ("decided", "acted", "contribution")
+
     def row(self) -> dict[str, float]:
-        """Flat columns for a CSV row."""
+        """Flat columns for a CSV row: the stack's measures, then per-layer ones as `<measure>_<layer>`."""
         out = {
             "return_mean": self.return_mean, "return_std": self.return_std, "repetition": self.repetition,
             "jerk": self.jerk, "decisions": self.decisions, "compute": self.compute, "episode_steps": self.steps,
         }
-        out |= {f"decided_{n}": v for n, v in self.decided.items()}
-        out |= {f"acted_{n}": v for n, v in self.acted.items()}
-        out |= {f"contribution_{n}": v for n, v in self.contribution.items()}
+        for measure in self.PER_LAYER:
+            out |= {f"{measure}_{n}": v for n, v in getattr(self, measure).items()}
         return out
+
+    @classmethod
+    def columns(cls, layers: Sequence[str]) -> list[str]:
+        """Every column `row` can give for a stack of `layers`, in its order."""
+        stack = ["return_mean", "return_std", "repetition", "jerk", "decisions", "compute", "episode_steps"]
+        return stack + [f"{measure}_{n}" for measure in cls.PER_LAYER for n in layers]
 
 
 def summarise(episodes: Sequence[EpisodeMeasures]) -> Evaluation:

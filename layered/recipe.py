@@ -8,12 +8,13 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from layered.combiners import COMBINERS
-from layered.envs import control_timestep, env_info
-from layered.learners import LEARNERS
+from layered.envs import env_info, env_spaces
+from layered.learners import LEARNERS, LearnerConfig
 from layered.orders import ORDERS
+from layered.stack import output_layout
 
 
 class RecipeError(ValueError):
@@ -37,6 +38,13 @@ class EnvConfig(Section):
     """Environment id, `family:name`; a bare name is a Gymnasium id, e.g. `Pendulum-v1`."""
     return_range: tuple[float, float] | None = None
     """(worst, best) return that normalises the AUC; defaults to the environment registry's."""
+
+    @field_validator("return_range")
+    @classmethod
+    def _worst_below_best(cls, value: tuple[float, float] | None) -> tuple[float, float] | None:
+        if value is not None and not value[0] < value[1]:
+            raise ValueError(f"the worst return must be below the best, as [worst, best] (got {list(value)})")
+        return value
 
 
 class CombineConfig(Section):
@@ -106,11 +114,14 @@ class TrainConfig(Section):
     """Explicit phases; giving them selects the `explicit` order."""
     steps_per_phase: int = Field(default=30_000, gt=0)
     """Base environment steps per phase."""
+    checkpoint_every: int | None = Field(default=None, gt=0)
+    """Environment steps between checkpoints of the whole training state, each taken at the next
+    episode end; default `eval.every`. A stopped run resumes from its last checkpoint."""
     warmup: int = Field(default=1000, ge=0)
     """Decisions of each learning layer taken uniformly at random before updates start."""
     discount: Literal["decision", "step"] = "decision"
     """`decision`: gamma per decision of a layer; `step`: gamma**k for a decision spanning k steps."""
-    seed: int = 0
+    seed: int = Field(default=0, ge=0)
     """Seed of the environment, the networks and the exploration."""
 
     @model_validator(mode="before")
@@ -146,12 +157,10 @@ class Recipe(Section):
     def layer_names(self) -> list[str]:
         return [layer.name for layer in self.layers]
 
-    def combiner_kind(self, index: int) -> str:
-        """The combiner of layer `index` (merging it with the layers below); the fastest layer has
-        no layer below, so its combiner is never consulted and is always plain `residual-clip`."""
-        if index == len(self.layers) - 1:
-            return "residual-clip"
-        return self.layers[index].combine or self.combine.kind
+    def learner_config(self, index: int) -> LearnerConfig:
+        """The validated learner settings of layer `index`: its own table over the shared one."""
+        table = {"kind": "td3", **self.learner, **self.layers[index].learner}
+        return LEARNERS.get(table["kind"]).Config.model_validate(table)
 
     def threshold(self, index: int) -> float:
         """The evaluation threshold (fraction of max action) applied below layer `index`."""
@@ -187,7 +196,7 @@ def _check_stack(recipe: Recipe) -> list[tuple[str, str]]:
         env_info(recipe.env.id)
     except KeyError as e:
         problems.append(("env.id", str(e.args[0])))
-    return problems
+    return problems or _check_capabilities(recipe)
 
 
 def _check_layers(recipe: Recipe) -> list[tuple[str, str]]:
@@ -208,8 +217,28 @@ def _check_layers(recipe: Recipe) -> list[tuple[str, str]]:
             continue
         if layer.combine not in COMBINERS:
             problems.append((f"{where}.combine", f"unknown combiner {layer.combine!r}; known: {', '.join(COMBINERS)}"))
-        elif i == len(names) - 1 and COMBINERS.get(layer.combine).gate_dims:
-            problems.append((f"{where}.combine", "the fastest layer has no layer below to defer to"))
+        elif i == len(names) - 1:
+            problems.append((f"{where}.combine", "the fastest layer has no layer below to merge with; remove its "
+                             "combine"))
+    return problems
+
+
+def _check_capabilities(recipe: Recipe) -> list[tuple[str, str]]:
+    """The environment's spaces suit layers, and each layer's learner can drive what the layer outputs."""
+    try:
+        spaces = env_spaces(recipe.env.id)
+    except KeyError as e:
+        return [("env.id", str(e.args[0]))]
+    if (problem := spaces.problem()) is not None:
+        return [("env.id", f"{recipe.env.id} cannot be controlled by layers: {problem}")]
+    action_dims = int(spaces.action_space.shape[0])  # type: ignore[index]  # a Box vector, checked above
+    problems = []
+    for i in range(len(recipe.layers)):
+        learner = LEARNERS.get(recipe.learner_config(i).kind)
+        layout = output_layout(recipe, i, action_dims)
+        if (why := learner.unfit(layout)) is not None:
+            problems.append((f"layers[{i}].learner", f"learner {recipe.learner_config(i).kind!r} cannot drive layer "
+                             f"{recipe.layers[i].name!r}, which outputs {layout.describe()}: {why}"))
     return problems
 
 
@@ -249,12 +278,6 @@ def _check_learner(table: dict[str, Any]) -> list[tuple[str, str]]:
     except ValidationError as e:
         return [("." + _key(err["loc"]), _describe(err)) for err in e.errors()]
     return []
-
-
-def learner_config(recipe: Recipe, index: int) -> Any:
-    """The validated learner config of layer `index`."""
-    table = {"kind": "td3", **recipe.learner, **recipe.layers[index].learner}
-    return LEARNERS.get(table["kind"]).Config.model_validate(table)
 
 
 _PATH_PART = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
@@ -343,7 +366,7 @@ def _resolve_periods(recipe: Recipe) -> tuple[Recipe, list[tuple[str, str]]]:
             continue
         if dt is None:
             try:
-                dt = control_timestep(recipe.env.id)
+                dt = env_spaces(recipe.env.id).timestep
             except KeyError as e:
                 return recipe, [("env.id", str(e.args[0]))]
             if dt is None:
@@ -368,9 +391,15 @@ def read_recipe_file(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]
     Tables merge key by key; any other value, lists of layers included, replaces the base's.
     """
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise RecipeError(str(path), [("", "no such recipe file")]) from None
+    except IsADirectoryError:
+        raise RecipeError(str(path), [("", "is a directory, not a recipe file")]) from None
+    except UnicodeDecodeError as e:
+        raise RecipeError(str(path), [("", f"not UTF-8 text (byte {e.start}); a recipe is a TOML text file")]) from None
+    except OSError as e:
+        raise RecipeError(str(path), [("", f"cannot be read: {e.strerror or e}")]) from None
     except tomllib.TOMLDecodeError as e:
         raise RecipeError(str(path), [("", f"not valid TOML: {e}")]) from None
     base = data.pop("extends", None)
@@ -403,5 +432,5 @@ def resolved(recipe: Recipe) -> dict[str, Any]:
     """The recipe as plain data with every default and each layer's full learner settings."""
     data = recipe.model_dump(mode="json", exclude_none=True)
     for i, layer in enumerate(data["layers"]):
-        layer["learner"] = learner_config(recipe, i).model_dump(mode="json")
+        layer["learner"] = recipe.learner_config(i).model_dump(mode="json")
     return data

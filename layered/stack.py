@@ -8,13 +8,32 @@ evaluated; a layer absent from the current phase contributes nothing and never d
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from gymnasium.spaces import Box
 
+from layered.buffer import Transition
 from layered.combiners import COMBINERS, Combiner, Route
-from layered.recipe import Recipe
+from layered.outputs import OutputLayout
+
+if TYPE_CHECKING:  # the recipe module validates stacks with the rules below, so it imports this one
+    from layered.recipe import Recipe
+
+
+def combiner_kind(recipe: Recipe, i: int) -> str | None:
+    """The combiner merging layer i with the layers below it; the fastest layer has none below, so none."""
+    if i == len(recipe.layers) - 1:
+        return None
+    return recipe.layers[i].combine or recipe.combine.kind
+
+
+def output_layout(recipe: Recipe, i: int, action_dims: int) -> OutputLayout:
+    """What layer i outputs: the env's action dims, its combiner's gate dims, and a repeat count if it repeats."""
+    kind = combiner_kind(recipe, i)
+    gate_dims = COMBINERS.get(kind).gate_dims if kind is not None else 0
+    return OutputLayout(action_dims, gate_dims, recipe.layers[i].max_repeat)
 
 
 @dataclass(frozen=True)
@@ -24,19 +43,36 @@ class Layer:
     name: str
     period: int
     sees: tuple[int, ...]  # indices of slower layers whose held actions extend the observation
-    combiner: Combiner
-    action_space: Box  # what the layer outputs: action dims, then any gate dims
+    combiner: Combiner | None  # None for the fastest layer: it has no layer below to merge with
+    layout: OutputLayout
+    action_space: Box  # bounds of each entry of the layout
     half_range: np.ndarray  # half-width of the layer's action dims, for the action penalty
     action_penalty: float
     defer_reward_scale: tuple[float, float]
     defer_penalty: float
     deviation_penalty: float
     delay: int  # decisions between choosing an output and its taking effect
-    max_repeat: int  # > 1: the output's last entry says for how many periods to hold it
+    gamma: float  # the layer's discount per decision (or per base step)
+    discount_per_step: bool  # True: a decision spanning k base steps is discounted by gamma**k
 
     def repeats(self, output: np.ndarray) -> int:
         """For how many of its periods the layer holds `output` before deciding again."""
-        return int(np.clip(np.rint(output[-1]), 1, self.max_repeat)) if self.max_repeat > 1 else 1
+        return int(np.clip(np.rint(output[-1]), 1, self.layout.max_repeat)) if self.layout.repeats else 1
+
+    def discount(self, elapsed: int) -> float:
+        """The discount of the bootstrap value after a decision that spanned `elapsed` base steps."""
+        return self.gamma**elapsed if self.discount_per_step else self.gamma
+
+
+@dataclass
+class Decision:
+    """A layer's latest decision and what has followed it so far: the makings of its next transition."""
+
+    seen: np.ndarray
+    output: np.ndarray
+    elapsed: int = 0  # base steps since the decision
+    path: list[tuple[np.ndarray, float]] = field(default_factory=list)  # repeating layers: per period
+    period_reward: float = 0.0  # repeating layers: reward of the period under way
 
 
 @dataclass(frozen=True)
@@ -48,19 +84,18 @@ class Composition:
     routes: dict[int, Route]
 
 
-def _layer_action_space(recipe: Recipe, i: int, env_space: Box, gate_dims: int) -> Box:
+def _layer_action_space(recipe: Recipe, i: int, env_space: Box, layout: OutputLayout) -> Box:
     """Env bounds scaled about their centre (a residual layer's centred on zero), then any gate
     dimensions in [-1, 1], then, for a layer that may repeat, the repeat count in [1, max_repeat]."""
     low, high = env_space.low.astype(np.float64), env_space.high.astype(np.float64)
     half = (high - low) / 2 * recipe.layers[i].action_scale
-    residual = i > 0 and COMBINERS.get(recipe.combiner_kind(i - 1)).gate_dims == 0
+    residual = i > 0 and output_layout(recipe, i - 1, layout.action_dims).gate_dims == 0
     mid = np.zeros_like(low) if residual else (high + low) / 2
     low, high = mid - half, mid + half
-    if gate_dims:
-        low, high = np.append(low, -np.ones(gate_dims)), np.append(high, np.ones(gate_dims))
-    max_repeat = recipe.layers[i].max_repeat
-    if max_repeat > 1:
-        low, high = np.append(low, 1.0), np.append(high, float(max_repeat))
+    if layout.gate_dims:
+        low, high = np.append(low, -np.ones(layout.gate_dims)), np.append(high, np.ones(layout.gate_dims))
+    if layout.repeats:
+        low, high = np.append(low, 1.0), np.append(high, float(layout.max_repeat))
     return Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
 
 
@@ -87,16 +122,18 @@ class Stack:
         self.env_half = env_half = (self.high - self.low) / 2
         self.layers: list[Layer] = []
         for i, cfg in enumerate(recipe.layers):
-            kind = COMBINERS.get(recipe.combiner_kind(i))
+            kind = combiner_kind(recipe, i)
             fraction = threshold if threshold is not None else recipe.threshold(i)
             absolute = fraction * env_half if evaluation and fraction > 0 else None
-            combiner = kind(threshold=absolute, per_dimension=recipe.combine.per_dimension)
-            space = _layer_action_space(recipe, i, action_space, kind.gate_dims)
+            combiner = None if kind is None else COMBINERS.get(kind)(absolute, recipe.combine.per_dimension)
+            layout = output_layout(recipe, i, self.action_dim)
+            space = _layer_action_space(recipe, i, action_space, layout)
             self.layers.append(Layer(
                 name=cfg.name,
                 period=int(cfg.period or 0),
                 sees=tuple(names.index(s) for s in cfg.sees if s != "obs"),
                 combiner=combiner,
+                layout=layout,
                 action_space=space,
                 half_range=((space.high - space.low) / 2)[: self.action_dim],
                 action_penalty=cfg.action_penalty,
@@ -104,7 +141,8 @@ class Stack:
                 defer_penalty=cfg.defer_penalty,
                 deviation_penalty=cfg.deviation_penalty,
                 delay=cfg.delay,
-                max_repeat=cfg.max_repeat,
+                gamma=recipe.learner_config(i).gamma,
+                discount_per_step=recipe.train.discount == "step",
             ))
         wanted = names if active is None else list(active)
         unknown = [n for n in wanted if n not in names]
@@ -116,6 +154,7 @@ class Stack:
         # outputs chosen but not yet in effect, oldest first (the real-time setting)
         self.inflight = [np.zeros((layer.delay, *layer.action_space.shape), np.float32) for layer in self.layers]
         self.resume_at = [0] * len(self.layers)  # the first step a repeating layer may decide again
+        self.decisions: list[Decision | None] = [None] * len(self.layers)  # this episode's latest, per layer
         self.t = 0
 
     def _observation_space(self, obs_space: Box, layer: Layer) -> Box:
@@ -133,6 +172,7 @@ class Stack:
         """Start an episode: step 0, every held output zero."""
         self.t = 0
         self.resume_at = [0] * len(self.layers)
+        self.decisions = [None] * len(self.layers)
         for out in (*self.held, *self.inflight):
             out.fill(0.0)
 
@@ -145,11 +185,12 @@ class Stack:
         return np.concatenate(parts)
 
     def _route(self, position: int, i: int) -> Route:
-        # The fastest present layer has no one below: its output always just joins the sum.
+        # The fastest present layer has no one below in this phase: its output just joins the sum.
         if position == len(self.active) - 1:
             return Route.ADD
-        layer = self.layers[i]
-        return layer.combiner.route(self.held[i][: self.action_dim + layer.combiner.gate_dims])
+        combiner = self.layers[i].combiner
+        assert combiner is not None, "only the fastest layer has no combiner, and it is always last"
+        return combiner.route(self.held[i][: self.action_dim + combiner.gate_dims])
 
     def next_due(self, start: int = 0) -> int | None:
         """The first present layer with index >= start that decides at the current step, if any."""
@@ -159,6 +200,11 @@ class Stack:
             if self._route(position, i) is Route.COMMIT:
                 return None
         return None
+
+    def decide(self, i: int, seen: np.ndarray, output: np.ndarray) -> None:
+        """Layer i, having observed `seen`, chose `output`: hold it and start its next transition."""
+        self.decisions[i] = Decision(seen, output)
+        self.hold(i, output)
 
     def hold(self, i: int, output: np.ndarray) -> None:
         """Layer i decided `output`; it is held until its next decision, or, with a delay of d,
@@ -215,6 +261,29 @@ class Stack:
                     r -= layer.deviation_penalty * deviation
             out[i] = r
         return out
+
+    def record(self, rewards: dict[int, float], obs: np.ndarray, ended: bool) -> None:
+        """Book one executed base step into each deciding layer's transition under way: one more
+        step elapsed and, for a layer that repeats, (its observation, its reward) at the end of
+        each of its periods (or of the episode). `rewards` are the step's `layer_rewards`."""
+        for i, r in rewards.items():
+            decision, layer = self.decisions[i], self.layers[i]
+            if decision is None:
+                continue
+            decision.elapsed += 1
+            if layer.layout.repeats:
+                decision.period_reward += r
+                if (self.t + 1) % layer.period == 0 or ended:
+                    decision.path.append((self.observation(i, obs), decision.period_reward))
+                    decision.period_reward = 0.0
+
+    def transition(self, i: int, reward: float, next_seen: np.ndarray, terminated: bool) -> Transition:
+        """Layer i's completed transition since its latest decision this episode, given the shaped
+        `reward` it accrued and what it sees now."""
+        decision = self.decisions[i]
+        assert decision is not None, f"layer {self.layers[i].name!r} has not decided yet this episode"
+        discount = self.layers[i].discount(decision.elapsed)
+        return Transition(decision.seen, decision.output, reward, next_seen, terminated, discount, tuple(decision.path))
 
     def tick(self) -> None:
         """Advance to the next base step."""

@@ -1,9 +1,15 @@
-"""The training loop: phases of a training order, each driving the stack's AEC env directly."""
+"""The training loop: phases of a training order, each driving the stack's AEC env directly.
+
+A run can be stopped at any moment and resumed to exactly the result of a run that never
+stopped: the loop's position is one `LoopState`, checkpointed with the learners at episode
+boundaries (see layered.runstate); SIGINT and SIGTERM finish the episode under way, checkpoint
+and stop.
+"""
 
 from __future__ import annotations
 
-import csv
 import json
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,15 +21,25 @@ import torch
 from tqdm import tqdm
 
 from layered.agents import make_aec_env
-from layered.buffer import Transition
-from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from layered.checkpoint import load_checkpoint, save_checkpoint, write_atomically
 from layered.envs import env_info
 from layered.evaluate import evaluate
+from layered.interrupt import StopRequest, Stopped
 from layered.learners import LEARNERS, Learner, UpdateStats
+from layered.logs import CsvLog
 from layered.metrics import Evaluation, normalised_auc
 from layered.orders import ORDERS, Phase
-from layered.recipe import Recipe, learner_config, resolved
+from layered.recipe import Recipe, load_recipe, resolved
 from layered.report import plot_curves, results_table
+from layered.rundir import RunInfo, prepare_run_dir, read_run_info
+from layered.runstate import LoopState, load_run, save_run
+from layered.stack import output_layout
+
+EPISODE_FIELDS = ["phase", "step", "return", "length"]
+
+
+class Diverged(RuntimeError):
+    """A non-finite loss, action or observation; the run's last checkpoint is left as it was."""
 
 
 @dataclass(frozen=True)
@@ -37,21 +53,51 @@ class PhaseResult:
     auc: float | None
 
 
+@dataclass(frozen=True)
+class Run:
+    """What stays fixed while a run trains: its recipe, learners, logs and where it checkpoints."""
+
+    recipe: Recipe
+    learners: dict[str, Learner]
+    metrics: CsvLog
+    episodes: CsvLog
+    checkpoint: Path
+    max_steps: int | None
+    progress: bool
+    stop: StopRequest
+
+    def save(self, state: LoopState) -> None:
+        """Checkpoint the whole training state, with how much of each log it covers."""
+        state.log_sizes = {"metrics": self.metrics.size(), "episodes": self.episodes.size()}
+        save_run(self.checkpoint, state, self.learners, resolved(self.recipe), self.max_steps)
+
+
 def phases_of(recipe: Recipe) -> list[Phase]:
     """The phases of the recipe's training order."""
     return ORDERS.get(recipe.train.order)(recipe.layer_names(), recipe.train.phases or [])
 
 
+def phase_budget(recipe: Recipe, phase: Phase, max_steps: int | None) -> int:
+    """Base environment steps of a phase: its own, or `train.steps_per_phase`, capped at `max_steps`."""
+    return min(phase.steps or recipe.train.steps_per_phase, max_steps or np.iinfo(np.int64).max)
+
+
+def checkpoint_interval(recipe: Recipe) -> int:
+    """Environment steps between checkpoints (each taken at the next episode end): by default, one per evaluation."""
+    return recipe.train.checkpoint_every or recipe.eval.every
+
+
 def build_learners(recipe: Recipe) -> dict[str, Learner]:
     """One new learner per layer, each with its own seed, on the spaces of the whole stack."""
+    torch.manual_seed(recipe.train.seed)
     env = make_aec_env(recipe)
     learners = {}
     for i, layer in enumerate(recipe.layers):
-        config = learner_config(recipe, i)
+        config = recipe.learner_config(i)
+        space = env.action_space(layer.name)
+        layout = output_layout(recipe, i, env.stack.action_dim)
         seed = recipe.train.seed * 1000 + i
-        learners[layer.name] = LEARNERS.get(config.kind)(
-            env.observation_space(layer.name), env.action_space(layer.name), config, seed
-        )
+        learners[layer.name] = LEARNERS.get(config.kind)(env.observation_space(layer.name), space, layout, config, seed)
     env.close()
     return learners
 
@@ -64,36 +110,18 @@ def load_learners(recipe: Recipe, run_dir: Path) -> dict[str, Learner]:
     return learners
 
 
-class CsvLog:
-    """Rows appended to a CSV file, flushed at once; the header is `fields` or the first row's keys.
-
-    With `keep_phases_below = k` an existing file keeps its rows of phases before k (resuming).
-    """
-
-    def __init__(self, path: Path, fields: list[str] | None = None, keep_phases_below: int = 0) -> None:
-        self.path = path
-        self._fields = fields
-        kept: list[dict[str, str]] = []
-        if keep_phases_below and path.exists():
-            with path.open() as f:
-                reader = csv.DictReader(f)
-                self._fields = list(reader.fieldnames or []) or fields
-                kept = [row for row in reader if int(row["phase"]) < keep_phases_below]
-        if self._fields is not None:
-            self._write_header()
-            for row in kept:
-                self.write(row)
-
-    def _write_header(self) -> None:
-        with self.path.open("w", newline="") as f:
-            csv.DictWriter(f, fieldnames=self._fields or []).writeheader()
-
-    def write(self, row: dict[str, Any]) -> None:
-        if self._fields is None:
-            self._fields = list(row)
-            self._write_header()
-        with self.path.open("a", newline="") as f:
-            csv.DictWriter(f, fieldnames=self._fields, extrasaction="ignore", restval="").writerow(row)
+def warmup_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
+    """Phases too short for a learning layer to finish its random warm-up, so that it never learns."""
+    out = []
+    periods = {layer.name: int(layer.period or 1) for layer in recipe.layers}
+    for p, phase in enumerate(phases_of(recipe)):
+        budget = phase_budget(recipe, phase, max_steps)
+        for name in phase.learn:
+            if budget <= recipe.train.warmup * periods[name]:
+                out.append(f"phase {p} runs {budget} steps, but layer {name!r} acts at random for its first "
+                           f"{recipe.train.warmup} decisions ({recipe.train.warmup * periods[name]} steps at period "
+                           f"{periods[name]}): it will not learn (lower train.warmup or raise the steps)")
+    return out
 
 
 def train(
@@ -103,143 +131,174 @@ def train(
     """Train every phase of `recipe`, writing the run directory; `max_steps` caps each phase.
 
     `label` names the setup for reports (e.g. `pendulum/tla-c`); runs of the same setup with
-    different seeds share it. It defaults to the run directory's name. After each phase the
-    whole training state is saved; with `resume`, a run that was stopped continues from its
-    last finished phase and ends exactly as if it had never stopped. `plugins` (see
-    layered.plugins) are recorded so that evaluating the run imports them again.
-    Returns the results row of each phase, as in results.json.
+    different seeds share it. It defaults to the run directory's name. With `resume`, a run
+    directory holding a stopped run continues from its last checkpoint (an empty one starts);
+    without, a directory holding a run is refused. `plugins` (see layered.plugins) are recorded
+    so that evaluating the run imports them again. Returns the results row of each phase, as in
+    results.json. Raises Stopped when SIGINT or SIGTERM stopped it, after a final checkpoint.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "recipe.toml").write_text(tomli_w.dumps(resolved(recipe)))
-    if plugins:
-        (out / "plugins.json").write_text(json.dumps(list(plugins)))
-    torch.manual_seed(recipe.train.seed)
-    learners = build_learners(recipe)
-    run_state = out / "checkpoints" / "run.pt"
-    rows: list[dict[str, Any]] = []
-    if resume and run_state.exists():
-        rows = _restore(run_state, learners, max_steps)
-    metrics = CsvLog(out / "metrics.csv", keep_phases_below=len(rows))
-    episodes = CsvLog(out / "episodes.csv", ["phase", "step", "return", "length"], keep_phases_below=len(rows))
-    for p, phase in enumerate(phases_of(recipe)):
-        if p < len(rows):
-            continue
-        budget = min(phase.steps or recipe.train.steps_per_phase, max_steps or np.iinfo(np.int64).max)
-        result = run_phase(recipe, p, phase, budget, learners, metrics, episodes, progress)
-        for name in phase.learn:
-            save_checkpoint(out / "checkpoints" / f"{name}.pt", name, learners[name].state_dict())
-        rows.append(phase_row(result))
-        save_checkpoint(run_state, "run", {
-            "rows": json.dumps(rows), "max_steps": max_steps, "torch_rng": torch.get_rng_state(),
-            "learners": {name: learner.resume_state() for name, learner in learners.items()},
-        })
-    write_results(recipe, rows, out, label or out.name)
-    return rows
+    learners = build_learners(recipe)  # before anything is written: a stack that cannot be built leaves nothing
+    for warning in warmup_warnings(recipe, max_steps):
+        print(f"layered: warning: {warning}", file=sys.stderr)
+    info = RunInfo(label or out.name, max_steps, tuple(plugins))
+    prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)
+    run = Run(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
+              CsvLog(out / "episodes.csv", EPISODE_FIELDS), out / "checkpoints" / "run.pt", max_steps, progress,
+              StopRequest())
+    state = load_run(run.checkpoint, learners, resolved(recipe), max_steps)
+    if state is None:
+        state = LoopState()
+        run.metrics.start()
+        run.episodes.start()
+    else:
+        run.metrics.truncate(state.log_sizes["metrics"])
+        run.episodes.truncate(state.log_sizes["episodes"])
+    with run.stop.installed():
+        phases = phases_of(recipe)
+        for p in range(len(state.rows), len(phases)):
+            if not state.curve:  # the phase starts now, rather than resuming from a checkpoint inside it
+                state.start_phase(p, phases[p].learn, recipe.eval.every, checkpoint_interval(recipe))
+            result = run_phase(run, state, phases[p], phase_budget(recipe, phases[p], max_steps))
+            for name in phases[p].learn:
+                save_checkpoint(out / "checkpoints" / f"{name}.pt", name, learners[name].state_dict())
+            state.finish_phase(phase_row(result))
+            run.save(state)
+            if run.stop.requested and p < len(phases) - 1:
+                raise Stopped(run.stop.requested, p + 1, 0, out)
+    write_results(recipe, state.rows, out, info.label)
+    return state.rows
 
 
-def run_plugins(run_dir: Path) -> list[str]:
-    """The plugins a run was trained with."""
-    path = run_dir / "plugins.json"
-    return list(json.loads(path.read_text())) if path.exists() else []
+def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
+    """Continue a stopped run from its last checkpoint, with the recipe and settings it was started with.
+
+    `max_steps`, when given, must be the one the run was started with.
+    """
+    run_dir = Path(run_dir)
+    info = read_run_info(run_dir)
+    recipe = load_recipe(run_dir / "recipe.toml")
+    steps = info.max_steps if max_steps is None else max_steps
+    return train(recipe, run_dir, steps, progress, info.label, resume=True, plugins=info.plugins)
 
 
-def _restore(run_state: Path, learners: dict[str, Learner], max_steps: int | None) -> list[dict[str, Any]]:
-    """Load the saved training state into `learners`; the finished phases' results rows."""
-    state = load_checkpoint(run_state, "run")
-    if state["max_steps"] != max_steps:
-        raise CheckpointError(f"{run_state}: the run was started with --steps {state['max_steps']}, not {max_steps}")
-    for name, learner in learners.items():
-        learner.load_resume_state(state["learners"][name])
-    torch.set_rng_state(state["torch_rng"])
-    return list(json.loads(state["rows"]))
+def run_phase(run: Run, state: LoopState, phase: Phase, budget: int) -> PhaseResult:
+    """Train `phase.learn` for `budget` base steps with the other present layers frozen, from `state`.
 
-
-def run_phase(
-    recipe: Recipe, index: int, phase: Phase, budget: int, learners: dict[str, Learner],
-    metrics: CsvLog, episodes: CsvLog, progress: bool,
-) -> PhaseResult:
-    """Train `phase.learn` for `budget` base steps with the other present layers frozen.
-
-    The loop per decision: observe the layer's last transition, act, step the env, update.
+    Per decision: store the layer's completed transition, act, step the env, update, log.
     Learning layers act at random for their first `train.warmup` decisions, then with
     exploration noise, and update once per decision after that; frozen layers act greedily.
     """
-    seed, gamma_mode = recipe.train.seed, recipe.train.discount
+    recipe, learners, warmup = run.recipe, run.learners, run.recipe.train.warmup
     env = make_aec_env(recipe, active=list(phase.active))
     eval_env = make_aec_env(recipe, active=list(phase.active), evaluation=True, record=True)
-    eval_seed = seed + recipe.eval.seed_offset
-    decisions = dict.fromkeys(phase.learn, 0)
-    curve: list[tuple[int, Evaluation]] = []
-
-    losses: dict[str, list[UpdateStats]] = {name: [] for name in phase.learn}
-
-    def evaluate_now(step: int) -> None:
-        result = evaluate(eval_env, learners, recipe.eval.episodes, eval_seed)
-        curve.append((step, result))
-        metrics.write({"phase": index, "learn": "+".join(phase.learn), "step": step, **result.row(),
-                       **_mean_losses(losses)})
-        bar.set_postfix_str(f"eval return {result.return_mean:.1f}")
-
-    bar = tqdm(total=budget, desc=f"phase {index + 1}: {'+'.join(phase.learn)}", unit="step",
-               disable=not progress, dynamic_ncols=True, mininterval=1.0)
-    evaluate_now(0)
-    steps, next_eval, episode = 0, recipe.eval.every, 0
-    while steps < budget:
-        env.reset(seed=seed + index if episode == 0 else None)
-        pending: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    bar = tqdm(total=budget, initial=state.step, desc=f"phase {state.phase}: {'+'.join(phase.learn)}", unit="step",
+               disable=not run.progress, dynamic_ncols=True, mininterval=1.0)
+    if not state.curve:
+        _evaluate(run, state, phase, eval_env, bar)
+    while state.step < budget:
+        _start_episode(env, state, recipe.train.seed)
         for name in env.agent_iter():
-            obs, reward, terminated, truncated, info = env.last()
-            learner, learns = learners[name], name in decisions
-            if learns and name in pending:
-                gamma = learner.config.gamma
-                discount = gamma ** info["elapsed"] if gamma_mode == "step" else gamma
-                path = tuple(info.get("path", ()))
-                learner.observe(Transition(*pending[name], reward, obs, terminated, discount, path))
+            obs, _, terminated, truncated, info = env.last()
+            learner, learns = learners[name], name in phase.learn
+            _check_finite(obs, "observation", name, state)
+            if learns and "transition" in info:
+                learner.observe(info["transition"])  # store
             if terminated or truncated:
                 env.step(None)
                 continue
-            if steps >= budget:
+            if state.step >= budget:
                 break
-            if not learns:
+            if not learns:  # act
                 action = learner.act(obs, explore=False)
-            elif decisions[name] < recipe.train.warmup:
-                action = learner.random_action()
             else:
-                action = learner.act(obs, explore=True)
-            pending[name] = (obs, action)
-            before = env.episode_steps
-            env.step(action)
-            if learns:
-                decisions[name] += 1
-                if decisions[name] > recipe.train.warmup and (stats := learner.update()) is not None:
-                    losses[name].append(stats)
-            advanced = env.episode_steps - before
-            steps += advanced
-            bar.update(advanced)
-            if steps >= next_eval:
-                evaluate_now(steps)
-                next_eval += recipe.eval.every
-        if not env.agents:  # the episode ran to its end rather than to the budget
-            episodes.write({"phase": index, "step": steps, "return": env.episode_return, "length": env.episode_steps})
-        episode += 1
-    if curve[-1][0] != steps:
-        evaluate_now(steps)
+                action = learner.random_action() if state.decisions[name] < warmup else learner.act(obs, explore=True)
+            _check_finite(action, "action", name, state)
+            env.step(action)  # step
+            state.step += env.advanced
+            bar.update(env.advanced)
+            if learns:  # update
+                state.decisions[name] += 1
+                if state.decisions[name] > warmup and (stats := learner.update()) is not None:
+                    _check_finite(np.array([stats.critic_loss, stats.actor_loss or 0.0]), "loss", name, state)
+                    state.losses[name].append(stats)
+            if state.step >= state.next_eval:  # log
+                _evaluate(run, state, phase, eval_env, bar)
+                state.next_eval += recipe.eval.every
+        _end_episode(run, env, state)
+    if state.curve[-1][0] != state.step:
+        _evaluate(run, state, phase, eval_env, bar)
     bar.close()
     env.close()
     eval_env.close()
-    return PhaseResult(index, phase, steps, curve[-1][1], _auc(recipe, curve))
+    return PhaseResult(state.phase, phase, state.step, state.curve[-1][1], _auc(recipe, state.curve))
 
 
-def _mean_losses(losses: dict[str, list[UpdateStats]]) -> dict[str, float]:
-    """Mean critic and actor loss of each learning layer since the last call (NaN if none); clears them."""
+def _start_episode(env: Any, state: LoopState, seed: int) -> None:
+    """Reset the training env: the phase's first episode from its seed, later ones from its generator."""
+    if state.episode == 0:
+        env.reset(seed=seed + state.phase)
+        return
+    if state.env_rng is not None:  # the first episode after resuming
+        env.base.unwrapped.np_random.bit_generator.state = state.env_rng
+        state.env_rng = None
+    env.reset()
+
+
+def _end_episode(run: Run, env: Any, state: LoopState) -> None:
+    """Log a finished episode; at a boundary past the checkpoint interval, or when asked to stop, checkpoint."""
+    if not env.agents:  # the episode ran to its end rather than to the budget
+        run.episodes.write({"phase": state.phase, "step": state.step, "return": env.episode_return,
+                            "length": env.episode_steps})
+    state.episode += 1
+    if state.step >= state.next_checkpoint or run.stop.requested:
+        while state.next_checkpoint <= state.step:
+            state.next_checkpoint += checkpoint_interval(run.recipe)
+        state.env_rng = env.base.unwrapped.np_random.bit_generator.state
+        run.save(state)
+        state.env_rng = None
+    if run.stop.requested:
+        raise Stopped(run.stop.requested, state.phase, state.step, run.checkpoint.parent.parent)
+
+
+def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: Any, bar: tqdm) -> None:
+    """Evaluate the present layers now and log the row, with each learning layer's mean losses since the last."""
+    recipe = run.recipe
+    result = evaluate(eval_env, run.learners, recipe.eval.episodes, recipe.train.seed + recipe.eval.seed_offset)
+    state.curve.append((state.step, result))
+    run.metrics.write({"phase": state.phase, "learn": "+".join(phase.learn), "step": state.step, **result.row(),
+                       **mean_losses(state.losses)})
+    for stats in state.losses.values():
+        stats.clear()
+    bar.set_postfix_str(f"eval return {result.return_mean:.1f}")
+
+
+def _check_finite(values: np.ndarray, what: str, layer: str, state: LoopState) -> None:
+    if not np.all(np.isfinite(values)):
+        raise Diverged(f"layer {layer!r} met a non-finite {what} in phase {state.phase} at step {state.step}; "
+                       "the last checkpoint is intact (lower the learning rate, or check the environment)")
+
+
+def metrics_fields(recipe: Recipe) -> list[str]:
+    """Columns of metrics.csv: every layer's, whether or not it is present in a phase."""
+    names = recipe.layer_names()
+    losses = [f"{kind}_loss_{n}" for n in names for kind in ("critic", "actor")]
+    return ["phase", "learn", "step", *Evaluation.columns(names), *losses]
+
+
+def mean_losses(losses: dict[str, list[UpdateStats]]) -> dict[str, float]:
+    """Mean critic and actor loss of each layer over its given updates (NaN where there are none)."""
     out = {}
     for name, stats in losses.items():
         actor = [s.actor_loss for s in stats if s.actor_loss is not None]
         out[f"critic_loss_{name}"] = float(np.mean([s.critic_loss for s in stats])) if stats else float("nan")
         out[f"actor_loss_{name}"] = float(np.mean(actor)) if actor else float("nan")
-        stats.clear()
     return out
+
+
+def run_plugins(run_dir: Path) -> list[str]:
+    """The plugins a run was trained with."""
+    return list(read_run_info(run_dir).plugins)
 
 
 def _auc(recipe: Recipe, curve: list[tuple[int, Evaluation]]) -> float | None:
@@ -260,6 +319,6 @@ def phase_row(r: PhaseResult) -> dict[str, Any]:
 def write_results(recipe: Recipe, rows: list[dict[str, Any]], out: Path, label: str) -> None:
     """results.json (every number of the table), results.md, and the learning-curve plot."""
     summary = {"env": recipe.env.id, "label": label, "seed": recipe.train.seed, "phases": rows}
-    (out / "results.json").write_text(json.dumps(summary, indent=2))
-    (out / "results.md").write_text(results_table(rows) + "\n")
     plot_curves(out / "metrics.csv", out / "curves.png", title=f"{recipe.env.id}: {out.name}")
+    write_atomically(out / "results.md", results_table(rows) + "\n")
+    write_atomically(out / "results.json", json.dumps(summary, indent=2))  # last: it marks the run finished

@@ -11,6 +11,7 @@ from gymnasium.spaces import Box
 from pydantic import BaseModel, ConfigDict, Field
 
 from layered.buffer import Transition
+from layered.outputs import OutputLayout
 from layered.registry import Registry
 
 
@@ -38,11 +39,22 @@ class Learner(ABC):
 
     Config: ClassVar[type[LearnerConfig]]
 
-    def __init__(self, obs_space: Box, action_space: Box, config: LearnerConfig, seed: int) -> None:
+    def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: LearnerConfig,
+                 seed: int) -> None:
+        """`action_space` bounds the layer's whole output, whose entries `layout` names."""
+        if (why := self.unfit(layout)) is not None:
+            raise ValueError(f"the {config.kind} learner cannot drive a layer that outputs {layout.describe()}: {why}")
         self.obs_space = obs_space
         self.action_space = action_space
+        self.layout = layout
         self.config = config
         self.rng = np.random.default_rng(seed)
+
+    @classmethod
+    def unfit(cls, layout: OutputLayout) -> str | None:
+        """Why this learner cannot drive a layer whose output is laid out as `layout`; None if it can.
+        Recipes are checked with it before anything is built."""
+        return None
 
     def random_action(self) -> np.ndarray:
         """A uniform sample from the action space, drawn from this learner's own generator."""

@@ -14,6 +14,7 @@ from torch import nn
 from layered.buffer import ReplayBuffer, Transition
 from layered.learners.base import Learner, UpdateStats
 from layered.learners.td3 import TD3, TD3Config, adam, linear_macs, mlp
+from layered.outputs import OutputLayout
 
 
 class ChoiceQ:
@@ -68,11 +69,13 @@ class ChoiceQ:
 class TD3WithChoice(Learner):
     """A learner whose output is a TD3 action followed by one discrete choice, encoded as a number."""
 
-    def __init__(self, obs_space: Box, action_space: Box, config: TD3Config, seed: int, choices: int) -> None:
-        super().__init__(obs_space, action_space, config, seed)
-        inner = Box(action_space.low[:-1], action_space.high[:-1], dtype=np.float32)
+    def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: TD3Config, seed: int,
+                 choices: int) -> None:
+        super().__init__(obs_space, action_space, layout, config, seed)
+        inner = Box(action_space.low[:-1], action_space.high[:-1], dtype=np.float32)  # the choice is the last entry
         own = set(type(config).model_fields) - set(TD3Config.model_fields)
-        self.td3 = TD3(obs_space, inner, TD3Config(**config.model_dump(exclude={"kind", *own})), seed)
+        td3_config = TD3Config(**config.model_dump(exclude={"kind", *own}))
+        self.td3 = TD3(obs_space, inner, OutputLayout(layout.size - 1), td3_config, seed)
         self.rng = np.random.default_rng([seed, 1])
         self.choice = ChoiceQ(self.td3, choices)
 

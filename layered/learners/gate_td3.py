@@ -17,6 +17,7 @@ from layered.buffer import Transition
 from layered.learners.base import LEARNERS
 from layered.learners.choice import TD3WithChoice
 from layered.learners.td3 import TD3Config
+from layered.outputs import OutputLayout
 
 
 class GateTD3Config(TD3Config):
@@ -34,10 +35,15 @@ class GateTD3(TD3WithChoice):
     Config = GateTD3Config
     config: GateTD3Config
 
-    def __init__(self, obs_space: Box, action_space: Box, config: GateTD3Config, seed: int) -> None:
-        if action_space.shape[0] < 2 or action_space.low[-1] != -1 or action_space.high[-1] != 1:
-            raise ValueError("the td3-gate learner needs a gate layer (combine = 'gate'): its last output is the gate")
-        super().__init__(obs_space, action_space, config, seed, choices=2)
+    def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: GateTD3Config,
+                 seed: int) -> None:
+        super().__init__(obs_space, action_space, layout, config, seed, choices=2)
+
+    @classmethod
+    def unfit(cls, layout: OutputLayout) -> str | None:
+        if layout.gate_dims != 1 or layout.repeats:
+            return "it needs a gate layer (combine = 'gate', above another layer) that does not repeat"
+        return None
 
     def encode(self, index: int) -> float:
         return 1.0 if index == 1 else -1.0

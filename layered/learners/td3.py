@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import copy
 import itertools
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import torch
@@ -14,13 +14,14 @@ from torch import nn
 
 from layered.buffer import ReplayBuffer, Transition
 from layered.learners.base import LEARNERS, Learner, LearnerConfig, UpdateStats
+from layered.outputs import OutputLayout
 
 
 class TD3Config(LearnerConfig):
     """TD3 settings; defaults are those of the TLA paper and of the original TD3."""
 
     kind: Literal["td3"] = "td3"
-    hidden: tuple[int, ...] = (400, 300)
+    hidden: tuple[Annotated[int, Field(gt=0)], ...] = (400, 300)
     """Hidden layer widths of the actor and of each critic."""
     lr: float = Field(default=3e-4, gt=0)
     """Adam learning rate of actor and critics."""
@@ -99,8 +100,9 @@ class TD3(Learner):
     Config = TD3Config
     config: TD3Config
 
-    def __init__(self, obs_space: Box, action_space: Box, config: TD3Config, seed: int) -> None:
-        super().__init__(obs_space, action_space, config, seed)
+    def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: TD3Config,
+                 seed: int) -> None:
+        super().__init__(obs_space, action_space, layout, config, seed)
         torch.manual_seed(seed)  # network initialisation
         self.torch_rng = torch.Generator().manual_seed(seed)  # target smoothing noise
         obs_dim, act_dim = obs_space.shape[0], action_space.shape[0]

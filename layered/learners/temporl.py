@@ -17,6 +17,7 @@ from layered.buffer import Transition
 from layered.learners.base import LEARNERS
 from layered.learners.choice import TD3WithChoice
 from layered.learners.td3 import TD3Config
+from layered.outputs import OutputLayout
 
 
 class TempoRLConfig(TD3Config):
@@ -34,10 +35,15 @@ class TempoRL(TD3WithChoice):
     Config = TempoRLConfig
     config: TempoRLConfig
 
-    def __init__(self, obs_space: Box, action_space: Box, config: TempoRLConfig, seed: int) -> None:
-        if action_space.shape[0] < 2 or action_space.low[-1] != 1 or action_space.high[-1] < 2:
-            raise ValueError("the temporl learner needs a layer with max_repeat > 1 (its last output is the count)")
-        super().__init__(obs_space, action_space, config, seed, choices=int(action_space.high[-1]))
+    def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: TempoRLConfig,
+                 seed: int) -> None:
+        super().__init__(obs_space, action_space, layout, config, seed, choices=layout.max_repeat)
+
+    @classmethod
+    def unfit(cls, layout: OutputLayout) -> str | None:
+        if not layout.repeats or layout.gate_dims:
+            return "it needs a layer with max_repeat > 1 and no gate (its last output is the repeat count)"
+        return None
 
     def encode(self, index: int) -> float:
         return float(index + 1)

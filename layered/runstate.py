@@ -1,0 +1,129 @@
+"""A run's training state: the loop's position as one object, and the checkpoint that saves it
+together with the learners, every random generator and the recipe it was made with.
+
+Checkpoints are taken at episode boundaries: no transition is then half complete and no
+simulator state needs saving, only the training environment's random generator.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from layered.checkpoint import CheckpointError, load_latest, save_checkpoint
+from layered.learners import Learner, UpdateStats
+from layered.metrics import Evaluation
+
+
+@dataclass
+class LoopState:
+    """Where training stands; what the loop reads besides the learners, and so what a checkpoint saves."""
+
+    phase: int = 0
+    """Index of the phase under way (phases are numbered from 0 everywhere)."""
+    step: int = 0
+    """Base environment steps taken in this phase."""
+    episode: int = 0
+    """Training episodes started in this phase (the first is seeded, later ones continue its generator)."""
+    next_eval: int = 0
+    """The step at which the next evaluation is due."""
+    next_checkpoint: int = 0
+    """The step after which the next episode boundary takes a checkpoint."""
+    decisions: dict[str, int] = field(default_factory=dict)
+    """Per learning layer: decisions taken in this phase (the first `train.warmup` act at random)."""
+    curve: list[tuple[int, Evaluation]] = field(default_factory=list)
+    """(step, evaluation) of this phase so far."""
+    losses: dict[str, list[UpdateStats]] = field(default_factory=dict)
+    """Per learning layer: the statistics of each update since the last evaluation."""
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    """The results row of each finished phase, as in results.json."""
+    env_rng: dict[str, Any] | None = None
+    """The training environment's random state at the checkpoint (None before its first episode)."""
+    log_sizes: dict[str, int] = field(default_factory=dict)
+    """Bytes each CSV log held at the checkpoint; a resumed run cuts them back to these."""
+
+    def start_phase(self, phase: int, learn: tuple[str, ...], eval_every: int, checkpoint_every: int) -> None:
+        """Move to the start of phase `phase`, whose `learn` layers start with no decisions."""
+        self.phase, self.step, self.episode, self.env_rng = phase, 0, 0, None
+        self.next_eval, self.next_checkpoint = eval_every, checkpoint_every
+        self.decisions = dict.fromkeys(learn, 0)
+        self.losses = {name: [] for name in learn}
+        self.curve = []
+
+    def finish_phase(self, row: dict[str, Any]) -> None:
+        """Record the finished phase's results; the next phase has not started."""
+        self.rows.append(row)
+        self.phase, self.step, self.episode = self.phase + 1, 0, 0
+        self.decisions, self.losses, self.curve = {}, {}, []
+
+    def to_json(self) -> str:
+        """The state as JSON text (floats round-trip exactly)."""
+        return json.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> LoopState:
+        """The state `to_json` wrote."""
+        data = json.loads(text)
+        data["curve"] = [(step, Evaluation(**evaluation)) for step, evaluation in data["curve"]]
+        data["losses"] = {name: [UpdateStats(**s) for s in stats] for name, stats in data["losses"].items()}
+        return cls(**data)
+
+
+def recipe_digest(resolved_recipe: dict[str, Any]) -> str:
+    """A fingerprint of a resolved recipe, stable across key order."""
+    return hashlib.sha256(json.dumps(resolved_recipe, sort_keys=True).encode()).hexdigest()
+
+
+def recipe_differences(saved: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
+    """`key: saved -> current` for every value that differs between two resolved recipes."""
+    out = []
+    for key in sorted(set(saved) | set(current), key=str):
+        a, b, where = saved.get(key), current.get(key), f"{prefix}{key}"
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += recipe_differences(a, b, f"{where}.")
+        elif isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+            for k, (x, y) in enumerate(zip(a, b, strict=True)):
+                out += recipe_differences({f"{where}[{k}]": x}, {f"{where}[{k}]": y})
+        elif a != b:
+            out.append(f"{where}: {a!r} -> {b!r}")
+    return out
+
+
+def save_run(path: Path, state: LoopState, learners: dict[str, Learner], resolved_recipe: dict[str, Any],
+             max_steps: int | None) -> None:
+    """Checkpoint the whole training state at an episode boundary; the previous checkpoint is kept."""
+    save_checkpoint(path, "run", {
+        "recipe": json.dumps(resolved_recipe, sort_keys=True), "recipe_digest": recipe_digest(resolved_recipe),
+        "max_steps": max_steps, "loop": state.to_json(), "torch_rng": torch.get_rng_state(),
+        "learners": {name: learner.resume_state() for name, learner in learners.items()},
+    }, keep_previous=True)
+
+
+def load_run(path: Path, learners: dict[str, Learner], resolved_recipe: dict[str, Any],
+             max_steps: int | None) -> LoopState | None:
+    """Restore the newest usable checkpoint into `learners`; its loop state, or None if there is none.
+
+    Refuses, naming the difference, a checkpoint made with another recipe or another `--steps`.
+    """
+    saved = load_latest(path, "run")
+    if saved is None:
+        return None
+    if saved["recipe_digest"] != recipe_digest(resolved_recipe):
+        changes = recipe_differences(json.loads(saved["recipe"]), resolved_recipe)
+        raise CheckpointError(f"{path.parent.parent}: the recipe differs from the one the run was started with "
+                              f"({'; '.join(changes[:3])}{'; ...' if len(changes) > 3 else ''})")
+    if saved["max_steps"] != max_steps:
+        def steps(n: int | None) -> str:
+            return "no --steps" if n is None else f"--steps {n}"
+
+        raise CheckpointError(f"{path.parent.parent}: the run was started with {steps(saved['max_steps'])}, "
+                              f"not {steps(max_steps)}")
+    for name, learner in learners.items():
+        learner.load_resume_state(saved["learners"][name])
+    torch.set_rng_state(saved["torch_rng"])
+    return LoopState.from_json(saved["loop"])
