@@ -8,16 +8,20 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import torch
 
 from layered.checkpoint import CheckpointError
+from layered.interrupt import Stopped
 from layered.plugins import PluginError, load_plugins
 from layered.recipe import RecipeError, load_recipe
 from layered.report import plot_episode, results_table
+from layered.rundir import RunDirError
 
 EXIT_BAD_INPUT = 2
+EXIT_DIVERGED = 1
+EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
 DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]
 
 
@@ -34,25 +38,48 @@ def _plugin_option(parser: argparse.ArgumentParser, note: str = "") -> None:
                         help=f"{help_text}{', ' + note if note else ''}")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line, like every other refusal of the command."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_BAD_INPUT, f"layered: error: {message} (see {self.prog} --help)\n")
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {value}")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="layered", description="Temporally layered control stacks.")
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = _Parser(prog="layered", description="Temporally layered control stacks.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     tr = sub.add_parser(
         "train", help="train a recipe and write a run directory",
-        usage="layered train RECIPE [key=value ...] [--out DIR] [--seed S] [--steps N] [--threads T]",
+        usage="layered train RECIPE [key=value ...] [--out DIR] [--seed S] [--steps N] [--threads T] [--force]",
         epilog="key=value pairs override recipe values, e.g. train.warmup=500 layers.fast.period=2",
     )
     tr.add_argument("recipe", help="recipe TOML file")
     tr.add_argument("--out", type=Path, help="run directory (default runs/<recipe>-s<seed>-<time>)")
     tr.add_argument("--seed", type=int, help="same as train.seed=S")
-    tr.add_argument("--steps", type=int, help="cap every training phase at N environment steps")
-    tr.add_argument("--threads", type=int, help="torch threads (use 1 per process when running several)")
+    tr.add_argument("--steps", type=_positive, help="cap every training phase at N environment steps")
+    tr.add_argument("--threads", type=_positive, help="torch threads (use 1 per process when running several)")
+    tr.add_argument("--force", action="store_true", help="start over in an --out that holds a stopped or finished run")
     _plugin_option(tr)
+    rs = sub.add_parser("resume", help="continue a stopped run from its last checkpoint",
+                        epilog="the run continues with the recipe and --steps it was started with")
+    rs.add_argument("run_dir", type=Path, help="run directory of a stopped run")
+    rs.add_argument("--steps", type=_positive, help="must be the --steps the run was started with (a check)")
+    rs.add_argument("--threads", type=_positive, help="torch threads (use 1 per process when running several)")
     ev = sub.add_parser("eval", help="evaluate a trained run directory")
-    ev.add_argument("run_dir", type=Path)
-    ev.add_argument("--episodes", type=int, help="episodes (default: the recipe's eval.episodes)")
+    ev.add_argument("run_dir", type=Path, help="run directory of a trained run")
+    ev.add_argument("--episodes", type=_positive, help="episodes (default: the recipe's eval.episodes)")
     ev.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
-    ev.add_argument("--threads", type=int, help="torch threads")
+    ev.add_argument("--threads", type=_positive, help="torch threads")
     _plugin_option(ev, "besides those the run was trained with")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
     ev.add_argument("--threshold-sweep", type=_thresholds, nargs="?", const=DEFAULT_SWEEP, metavar="X,Y,...",
@@ -65,10 +92,10 @@ def _parser() -> argparse.ArgumentParser:
         epilog="finished runs are skipped and stopped ones resume; then: layered report DIR",
     )
     sw.add_argument("recipes", nargs="+", metavar="RECIPE", help="recipe files (and key=value overrides)")
-    sw.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 (default 3)")
-    sw.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel processes (default: cores)")
+    sw.add_argument("--seeds", type=_positive, default=3, help="seeds 0..N-1 (default 3)")
+    sw.add_argument("--jobs", type=_positive, default=os.cpu_count() or 1, help="parallel processes (default: cores)")
     sw.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep directory (default runs/sweep)")
-    sw.add_argument("--steps", type=int, help="cap every training phase at N environment steps")
+    sw.add_argument("--steps", type=_positive, help="cap every training phase at N environment steps")
     sw.add_argument("--backend", choices=["local", "ray"], default="local",
                     help="local processes (default) or Ray tasks (needs the extra layered[ray])")
     sw.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
@@ -85,19 +112,37 @@ def _fail(message: str) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
+    from layered.rundir import check_new_run_dir, clear_run_dir
     from layered.trainer import train
 
     overrides = list(args.overrides) + ([f"train.seed={args.seed}"] if args.seed is not None else [])
     plugins = load_plugins(args.plugin)
     recipe = load_recipe(args.recipe, overrides)
-    if args.steps is not None and args.steps <= 0:
-        return _fail("--steps must be a positive number of environment steps")
     out = args.out or Path("runs") / f"{Path(args.recipe).stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
-    if out.exists() and any(out.iterdir()):
-        return _fail(f"{out} already holds a run; choose another --out")
+    args.out = out
+    if args.force and out.is_dir():
+        clear_run_dir(out)
+    check_new_run_dir(out)
     print(f"training {args.recipe} -> {out}", file=sys.stderr)
     source = Path(args.recipe)
     train(recipe, out, max_steps=args.steps, label=f"{source.parent.name}/{source.stem}", plugins=plugins)
+    return _finished(out)
+
+
+def _resume(args: argparse.Namespace) -> int:
+    from layered.rundir import read_run_info
+    from layered.trainer import resume
+
+    load_plugins(read_run_info(args.run_dir).plugins)
+    if (args.run_dir / "results.json").exists():
+        print(f"{args.run_dir} has finished; nothing to resume", file=sys.stderr)
+        return 0
+    print(f"resuming {args.run_dir}", file=sys.stderr)
+    resume(args.run_dir, max_steps=args.steps)
+    return _finished(args.run_dir)
+
+
+def _finished(out: Path) -> int:
     print((out / "results.md").read_text())
     print(f"run directory: {out} (results.json, metrics.csv, curves.png, checkpoints/)")
     return 0
@@ -106,13 +151,11 @@ def _train(args: argparse.Namespace) -> int:
 def _eval(args: argparse.Namespace) -> int:
     from layered.trainer import load_learners, phases_of, run_plugins
 
-    if not (args.run_dir / "recipe.toml").exists():
-        return _fail(f"{args.run_dir} is not a run directory (no recipe.toml)")
     sweep = [args.threshold] if args.threshold is not None else []
     sweep += args.threshold_sweep or []
     if any(t < 0 for t in sweep):
         return _fail("thresholds must be >= 0")
-    load_plugins(run_plugins(args.run_dir) + args.plugin)
+    load_plugins(run_plugins(args.run_dir) + args.plugin)  # refuses a directory that holds no run
     recipe = load_recipe(args.run_dir / "recipe.toml")
     active = list(phases_of(recipe)[-1].active)
     if args.gallery == "":
@@ -199,8 +242,6 @@ def _sweep(args: argparse.Namespace) -> int:
 
     overrides = [a for a in args.recipes if "=" in a] + args.overrides
     recipes = [a for a in args.recipes if "=" not in a]
-    if args.seeds <= 0 or args.jobs <= 0 or (args.steps is not None and args.steps <= 0):
-        return _fail("--seeds, --jobs and --steps must be positive")
     plugins = load_plugins(args.plugin)
     jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins)
     if args.backend == "ray":
@@ -216,11 +257,14 @@ def _sweep(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
-COMMANDS = {"train": _train, "eval": _eval, "sweep": _sweep, "report": _report}
+COMMANDS = {"train": _train, "resume": _resume, "eval": _eval, "sweep": _sweep, "report": _report}
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point; returns 2 on bad input with one line per problem and no traceback."""
+    """Entry point; returns 2 on bad input with one line per problem and no traceback, 1 when
+    training diverged, 130 or 143 when SIGINT or SIGTERM stopped it."""
+    from layered.trainer import Diverged
+
     parser = _parser()
     args, extra = parser.parse_known_args(argv)
     unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command not in ("train", "sweep")]
@@ -235,8 +279,28 @@ def main(argv: list[str] | None = None) -> int:
         for line in e.lines:
             print(f"layered: error: {line}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (CheckpointError, PluginError) as e:
+    except (CheckpointError, PluginError, RunDirError) as e:
         return _fail(str(e))
+    except Stopped as e:
+        print(f"layered: {e}", file=sys.stderr)
+        return EXIT_SIGNAL.get(e.signal_name, 1)
+    except Diverged as e:
+        print(f"layered: diverged: {e}", file=sys.stderr)
+        return EXIT_DIVERGED
+    except KeyboardInterrupt:
+        print(f"\nlayered: stopped at once; {_how_to_continue(args)}", file=sys.stderr)
+        return EXIT_SIGNAL["SIGINT"]
+    except OSError as e:  # e.g. an --out that cannot be created
+        return _fail(f"{e.filename or ''}: {e.strerror or e}")
+
+
+def _how_to_continue(args: argparse.Namespace) -> str:
+    if args.command == "sweep":
+        return "running the same sweep again resumes every run from its last checkpoint"
+    if args.command in ("train", "resume"):
+        run = getattr(args, "out", None) or args.run_dir
+        return f"continue from the last checkpoint with: layered resume {run}"
+    return "nothing was being trained"
 
 
 if __name__ == "__main__":

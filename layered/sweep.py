@@ -1,7 +1,8 @@
 """Experiments over recipes and seeds: every (recipe, seed) pair in its own run directory.
 
 Jobs run in parallel processes with one torch thread each. A finished run (results.json) is
-skipped; a stopped one resumes from its last finished phase.
+skipped; a stopped one resumes from its last checkpoint, here or, with Ray, on whichever
+machine runs it. Ctrl-C stops every run at its next episode end with a checkpoint.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ class Outcome:
     """What became of a job."""
 
     job: Job
-    status: str  # "done", "skipped" (already finished) or "failed"
+    status: str  # "done", "skipped" (already finished), "stopped" (by a signal, checkpointed) or "failed"
     detail: str
 
 
@@ -77,6 +78,7 @@ def run_job(job: Job) -> Outcome:
     """Train one job in this process (one torch thread), its output going to the run's train.log."""
     import torch
 
+    from layered.interrupt import Stopped
     from layered.trainer import train
 
     if (job.out / "results.json").exists():
@@ -88,6 +90,9 @@ def run_job(job: Job) -> Outcome:
         try:
             rows = train(load_recipe(job.recipe), job.out, max_steps=job.max_steps, progress=True,
                          label=job.label, resume=True, plugins=job.plugins)
+        except Stopped as e:
+            print(f"stopped: {e}", file=log)
+            return Outcome(job, "stopped", f"phase {e.phase}, step {e.step}; the same sweep again resumes it")
         except Exception as e:  # reported per job; the sweep goes on with the others
             print(f"failed: {e.__class__.__name__}: {e}", file=log)
             return Outcome(job, "failed", f"{e.__class__.__name__}: {e} (see {job.out / 'train.log'})")
@@ -103,11 +108,15 @@ def run_local(jobs: Sequence[Job], workers: int) -> list[Outcome]:
     with ProcessPoolExecutor(max_workers=workers, mp_context=context,
                              initializer=_init_worker, initargs=(os.getpid(),)) as pool:
         futures = [pool.submit(run_job, job) for job in jobs]
-        for future in as_completed(futures):
-            outcome = future.result()
-            outcomes.append(outcome)
-            bar.update()
-            bar.write(f"{outcome.status:>7}  {outcome.job.out}: {outcome.detail}")
+        try:
+            for future in as_completed(futures):
+                outcome = future.result()
+                outcomes.append(outcome)
+                bar.update()
+                bar.write(f"{outcome.status:>7}  {outcome.job.out}: {outcome.detail}")
+        except KeyboardInterrupt:  # the workers got the signal too: let them checkpoint, start no more
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
     bar.close()
     return outcomes
 
@@ -129,21 +138,29 @@ def _exit_when_orphaned(sweep_pid: int, every: float = 1.0) -> None:
 
 
 def _pack(run_dir: Path) -> dict[str, bytes]:
-    """Every file of a finished run directory but the resume state, keyed by relative path."""
-    return {
-        str(p.relative_to(run_dir)): p.read_bytes()
-        for p in sorted(run_dir.rglob("*")) if p.is_file() and p.name != "run.pt"
-    }
+    """Every file of a run directory, checkpoints included, keyed by relative path."""
+    if not run_dir.exists():
+        return {}
+    return {str(p.relative_to(run_dir)): p.read_bytes() for p in sorted(run_dir.rglob("*")) if p.is_file()}
 
 
-def _run_remote(job: Job) -> tuple[Outcome, dict[str, bytes]]:
-    """A Ray task: train the job in a scratch directory of whichever machine runs it, return its files."""
+def _unpack(files: dict[str, bytes], run_dir: Path) -> None:
+    for relative, content in files.items():
+        target = run_dir / relative
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(content)
+
+
+def _run_remote(job: Job, files: dict[str, bytes]) -> tuple[Outcome, dict[str, bytes]]:
+    """A Ray task: continue the job from the run's `files` (empty: from the start) in a scratch
+    directory of whichever machine runs it, and return the run's files."""
     import tempfile
 
     with tempfile.TemporaryDirectory(prefix="layered-") as scratch:
         remote_job = Job(job.recipe, Path(scratch) / "run", job.label, job.max_steps, job.plugins)
+        _unpack(files, remote_job.out)
         outcome = run_job(remote_job)
-        files = _pack(remote_job.out) if remote_job.out.exists() else {}
+        files = _pack(remote_job.out)
     return Outcome(job, outcome.status, outcome.detail.replace(str(remote_job.out), str(job.out))), files
 
 
@@ -151,7 +168,8 @@ def run_ray(jobs: Sequence[Job], address: str | None = None) -> list[Outcome]:
     """Run the unfinished jobs as Ray tasks (one CPU each) on the cluster at `address` (default:
     start a local one) and write each run's files into its run directory here.
 
-    A run stopped on a cluster starts again from its beginning; finished runs are skipped.
+    Each task gets the files its run directory holds here, so a stopped run resumes from the
+    last checkpoint that came back; finished runs are skipped.
     """
     try:
         import ray
@@ -161,7 +179,7 @@ def run_ray(jobs: Sequence[Job], address: str | None = None) -> list[Outcome]:
              runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})
     task = ray.remote(num_cpus=1)(_run_remote)
     outcomes = [Outcome(j, "skipped", "already finished") for j in jobs if (j.out / "results.json").exists()]
-    pending = {task.remote(j): j for j in jobs if not (j.out / "results.json").exists()}
+    pending = {task.remote(j, _pack(j.out)): j for j in jobs if not (j.out / "results.json").exists()}
     bar = tqdm(total=len(jobs), initial=len(outcomes), desc="sweep (ray)", unit="run", file=sys.stderr)
     for outcome in outcomes:
         bar.write(f"{outcome.status:>7}  {outcome.job.out}: {outcome.detail}")
@@ -169,10 +187,7 @@ def run_ray(jobs: Sequence[Job], address: str | None = None) -> list[Outcome]:
         done, _ = ray.wait(list(pending), num_returns=1)
         outcome, files = ray.get(done[0])
         del pending[done[0]]
-        for relative, content in files.items():
-            target = outcome.job.out / relative
-            target.parent.mkdir(parents=True, exist_ok=True)
-            target.write_bytes(content)
+        _unpack(files, outcome.job.out)
         outcomes.append(outcome)
         bar.update()
         bar.write(f"{outcome.status:>7}  {outcome.job.out}: {outcome.detail}")

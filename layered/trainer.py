@@ -31,7 +31,7 @@ from layered.metrics import Evaluation, normalised_auc
 from layered.orders import ORDERS, Phase
 from layered.recipe import Recipe, load_recipe, resolved
 from layered.report import plot_curves, results_table
-from layered.rundir import RunInfo, prepare_run_dir, read_run_info
+from layered.rundir import RunDirError, RunInfo, prepare_run_dir, read_run_info
 from layered.runstate import LoopState, load_run, save_run
 from layered.stack import output_layout
 
@@ -177,9 +177,11 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
     """
     run_dir = Path(run_dir)
     info = read_run_info(run_dir)
+    if max_steps is not None and max_steps != info.max_steps:
+        started = "no --steps" if info.max_steps is None else f"--steps {info.max_steps}"
+        raise RunDirError(f"{run_dir}: the run was started with {started}, not --steps {max_steps}")
     recipe = load_recipe(run_dir / "recipe.toml")
-    steps = info.max_steps if max_steps is None else max_steps
-    return train(recipe, run_dir, steps, progress, info.label, resume=True, plugins=info.plugins)
+    return train(recipe, run_dir, info.max_steps, progress, info.label, resume=True, plugins=info.plugins)
 
 
 def run_phase(run: Run, state: LoopState, phase: Phase, budget: int) -> PhaseResult:

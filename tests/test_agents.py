@@ -34,9 +34,9 @@ def test_a_slow_layers_reward_is_the_sum_over_its_period_and_info_has_the_span()
     got = []
     for _ in env.agent_iter(max_iter=3):
         _, reward, _, _, info = env.last()
-        got.append((reward, info["elapsed"]))
+        got.append((reward, info.get("elapsed")))
         env.step(action)
-    assert got[0] == (0.0, 0)
+    assert got[0] == (0.0, None)  # no decision yet, so no transition to hand over
     assert [r for r, _ in got[1:]] == pytest.approx(expected, rel=1e-6)
     assert [k for _, k in got[1:]] == [4, 4]
 
@@ -92,7 +92,8 @@ def test_a_repeating_layer_gets_the_observation_and_reward_of_each_period_it_hel
     env.step(np.array([1.0, 3.0], np.float32))  # hold 1.0 for three steps
     expected = [plain.step(np.array([1.0], np.float32))[:2] for _ in range(3)]
     _, reward, _, _, info = env.last()
-    assert info["elapsed"] == 3 and len(info["path"]) == 3
-    for (o, r), (eo, er) in zip(info["path"], expected, strict=True):
+    path = info["transition"].path
+    assert info["elapsed"] == 3 and len(path) == 3
+    for (o, r), (eo, er) in zip(path, expected, strict=True):
         assert o == pytest.approx(eo, rel=1e-5) and r == pytest.approx(er)
-    assert reward == pytest.approx(sum(r for _, r in expected))
+    assert reward == pytest.approx(sum(r for _, r in expected)) == info["transition"].reward

@@ -1,5 +1,6 @@
 """docs/extending.md shows the example plugins exactly, and each one works from a recipe."""
 
+import json
 import re
 import subprocess
 import sys
@@ -34,7 +35,7 @@ def test_each_example_plugin_trains_from_its_recipe_and_is_needed(plugin, recipe
     out = tmp_path / "run"
     proc = cli("train", EXAMPLES / recipe, *TINY, *small, "--steps", 120, "--out", out, "--plugin", EXAMPLES / plugin)
     assert proc.returncode == 0, proc.stderr
-    assert (out / "plugins.json").exists()
+    assert json.loads((out / "run.json").read_text())["plugins"] == [str((EXAMPLES / plugin).resolve())]
     assert cli("eval", out, "--episodes", 1).returncode == 0  # the run remembers its plugin
     without = cli("train", EXAMPLES / recipe, "--out", tmp_path / "other")
     assert without.returncode == 2 and name in without.stderr

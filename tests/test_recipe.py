@@ -9,6 +9,7 @@ import tomli_w
 
 from layered import RecipeError, load_recipe
 from layered.recipe import resolved
+from layered.stack import combiner_kind
 
 RECIPES = Path(__file__).parent.parent / "recipes"
 TLA_C = RECIPES / "pendulum" / "tla-c.toml"
@@ -31,14 +32,12 @@ def test_shipped_recipes_have_the_papers_settings():
     assert r.train.order == "slow-to-fast" and r.train.steps_per_phase == 30000 and r.eval.every == 2500
     assert r.layers[1].sees == ["obs", "slow"] and r.combine.eval_threshold == 0.3
     o = load_recipe(RECIPES / "pendulum" / "tla-o.toml")
-    assert o.combiner_kind(0) == "gate" and o.train.order == "fast-to-slow"
+    assert combiner_kind(o, 0) == "gate" and combiner_kind(o, 1) is None and o.train.order == "fast-to-slow"
     assert len(load_recipe(RECIPES / "pendulum" / "td3.toml").layers) == 1
 
 
 def test_td3_defaults_are_the_papers():
-    from layered.recipe import learner_config
-
-    c = learner_config(load_recipe(base()), 0)
+    c = load_recipe(base()).learner_config(0)
     assert (c.hidden, c.lr, c.batch_size, c.gamma, c.tau) == ((400, 300), 3e-4, 256, 0.99, 0.005)
     assert (c.policy_noise, c.noise_clip, c.exploration_noise, c.policy_delay) == (0.2, 0.5, 0.1, 2)
     assert load_recipe(base()).train.warmup == 1000

@@ -8,6 +8,7 @@ from gymnasium.spaces import Box
 from layered.buffer import Transition
 from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from layered.learners.td3 import TD3, TD3Config
+from layered.outputs import OutputLayout
 
 OBS = Box(-1.0, 1.0, (3,), np.float32)
 ACT = Box(np.array([-2.0, 0.0], np.float32), np.array([2.0, 1.0], np.float32))
@@ -15,7 +16,7 @@ CONFIG = TD3Config(hidden=(32, 32), batch_size=16)
 
 
 def filled(seed, n=64):
-    learner = TD3(OBS, ACT, CONFIG, seed)
+    learner = TD3(OBS, ACT, OutputLayout(2), CONFIG, seed)
     rng = np.random.default_rng(0)
     for _ in range(n):
         o = rng.uniform(-1, 1, 3).astype(np.float32)
@@ -73,14 +74,14 @@ def test_bad_checkpoints_are_clear_errors(tmp_path):
     with pytest.raises(CheckpointError, match="not a readable checkpoint"):
         load_checkpoint(tmp_path / "x.pt", "x")
     save_checkpoint(tmp_path / "y.pt", "slow", {"w": torch.zeros(1)})
-    with pytest.raises(CheckpointError, match="of layer 'fast'"):
+    with pytest.raises(CheckpointError, match="not a checkpoint of 'fast'"):
         load_checkpoint(tmp_path / "y.pt", "fast")
 
 
 def test_learns_the_best_action_of_a_one_step_problem():
     """Reward -(a - 0.5)^2 with no future: the greedy action must approach 0.5."""
     space = Box(-1.0, 1.0, (1,), np.float32)
-    learner = TD3(OBS, space, TD3Config(hidden=(32, 32), batch_size=64, lr=3e-3), seed=0)
+    learner = TD3(OBS, space, OutputLayout(1), TD3Config(hidden=(32, 32), batch_size=64, lr=3e-3), seed=0)
     obs = np.zeros(3, np.float32)
     for _ in range(500):
         a = learner.random_action()
@@ -94,7 +95,8 @@ def test_temporl_learns_from_every_period_and_every_partial_repetition():
     from layered.learners.temporl import TempoRL, TempoRLConfig
 
     space = Box(np.array([-2.0, 1.0], np.float32), np.array([2.0, 4.0], np.float32))
-    learner = TempoRL(OBS, space, TempoRLConfig(hidden=(16,), batch_size=4, gamma=0.5), seed=0)
+    config = TempoRLConfig(hidden=(16,), batch_size=4, gamma=0.5)
+    learner = TempoRL(OBS, space, OutputLayout(1, max_repeat=4), config, seed=0)
     states = [np.full(3, k, np.float32) for k in range(4)]
     path = tuple((states[k + 1], float(k + 1)) for k in range(3))  # rewards 1, 2, 3
     learner.observe(Transition(states[0], np.array([0.3, 3.0], np.float32), 6.0, states[3], True, 0.5, path))
@@ -118,7 +120,8 @@ def test_gate_learner_proposes_an_action_and_a_gate_and_learns_which_pays():
     from layered.learners.gate_td3 import GateTD3, GateTD3Config
 
     space = Box(np.array([-2.0, -1.0], np.float32), np.array([2.0, 1.0], np.float32))
-    learner = GateTD3(OBS, space, GateTD3Config(hidden=(32,), batch_size=64, lr=3e-3), seed=0)
+    config = GateTD3Config(hidden=(32,), batch_size=64, lr=3e-3)
+    learner = GateTD3(OBS, space, OutputLayout(1, gate_dims=1), config, seed=0)
     obs = np.zeros(3, np.float32)
     for _ in range(400):
         a = learner.random_action()

@@ -9,7 +9,10 @@ import pytest
 from conftest import stack_recipe
 
 from layered import load_recipe
-from layered.trainer import CsvLog, build_learners, phases_of, run_phase, train
+from layered.interrupt import StopRequest
+from layered.logs import CsvLog
+from layered.runstate import LoopState
+from layered.trainer import EPISODE_FIELDS, Run, build_learners, metrics_fields, phases_of, run_phase, train
 
 RECIPES = sorted((Path(__file__).parent.parent / "recipes").rglob("*.toml"))
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
@@ -84,7 +87,7 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     recipe = PENDULUM / "tla-c.toml"
     proc = layered_cli("train", recipe, *TINY, "--steps", 200, "--seed", 4, "--out", out)
     assert proc.returncode == 0, proc.stderr
-    assert "| phase | learns |" in proc.stdout and "phase 2: fast" in proc.stderr  # table and progress
+    assert "| phase | learns |" in proc.stdout and "phase 1: fast" in proc.stderr  # table and progress
     assert load_recipe(out / "recipe.toml").train.seed == 4
     proc = layered_cli("eval", out, "--episodes", 2, "--threshold", 0.0, "--plot")
     assert proc.returncode == 0, proc.stderr
@@ -111,33 +114,15 @@ def test_time_limit_truncation_bootstraps_and_termination_does_not(tmp_path):
     for env_id, terminates in (("Pendulum-v1", False), ("InvertedPendulum-v5", True)):
         recipe = load_recipe(stack_recipe([1], env=env_id).model_dump(), [*TINY, "train.warmup=1000"])
         learners = build_learners(recipe)
-        run_phase(recipe, 0, phases_of(recipe)[0], 450, learners, CsvLog(tmp_path / f"{env_id}.csv"),
-                  CsvLog(tmp_path / f"{env_id}-ep.csv"), progress=False)
+        logs = [CsvLog(tmp_path / f"{env_id}-{name}.csv", fields) for name, fields in
+                (("metrics", metrics_fields(recipe)), ("episodes", EPISODE_FIELDS))]
+        for log in logs:
+            log.start()
+        run = Run(recipe, learners, *logs, tmp_path / "run.pt", None, False, StopRequest())
+        state = LoopState()
+        state.start_phase(0, ("l0",), recipe.eval.every, recipe.eval.every)
+        run_phase(run, state, phases_of(recipe)[0], 450)
         buffer = learners["l0"].buffer
         not_done = buffer._not_done[: len(buffer)]
         assert len(buffer) >= 400  # Pendulum: two truncated episodes stored whole
         assert bool((not_done == 0).any()) is terminates
-
-
-def test_a_stopped_run_resumes_to_exactly_the_result_of_an_uninterrupted_one(tmp_path, monkeypatch):
-    import layered.trainer as trainer
-
-    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
-    train(recipe, tmp_path / "whole", max_steps=250, progress=False, label="x")
-    original = trainer.run_phase
-
-    def stop_in_second_phase(recipe, index, *args, **kwargs):
-        if index == 1:
-            original(recipe, index, *args, **kwargs)  # write some of its rows, then die
-            raise KeyboardInterrupt
-        return original(recipe, index, *args, **kwargs)
-
-    monkeypatch.setattr(trainer, "run_phase", stop_in_second_phase)
-    with pytest.raises(KeyboardInterrupt):
-        train(recipe, tmp_path / "stopped", max_steps=250, progress=False, label="x")
-    monkeypatch.setattr(trainer, "run_phase", original)
-    train(recipe, tmp_path / "stopped", max_steps=250, progress=False, label="x", resume=True)
-    for name in ("metrics.csv", "episodes.csv", "results.json"):
-        assert (tmp_path / "stopped" / name).read_text() == (tmp_path / "whole" / name).read_text(), name
-    with pytest.raises(Exception, match="--steps 250, not 300"):
-        train(recipe, tmp_path / "stopped", max_steps=300, progress=False, resume=True)
