@@ -297,10 +297,10 @@ def main(argv: list[str] | None = None) -> int:
 def _how_to_continue(args: argparse.Namespace) -> str:
     if args.command == "sweep":
         return "running the same sweep again resumes every run from its last checkpoint"
-    if args.command in ("train", "resume"):
-        run = getattr(args, "out", None) or args.run_dir
+    run = getattr(args, "out", None) or getattr(args, "run_dir", None)
+    if run is not None and (run / "run.json").exists():
         return f"continue from the last checkpoint with: layered resume {run}"
-    return "nothing was being trained"
+    return "nothing was saved; run the same command again"
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ import tomli_w
 import torch
 from tqdm import tqdm
 
-from layered.agents import make_aec_env
+from layered.agents import LayeredEnv, make_aec_env
 from layered.checkpoint import load_checkpoint, save_checkpoint, write_atomically
 from layered.envs import env_info
 from layered.evaluate import evaluate
@@ -187,56 +187,65 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
 def run_phase(run: Run, state: LoopState, phase: Phase, budget: int) -> PhaseResult:
     """Train `phase.learn` for `budget` base steps with the other present layers frozen, from `state`.
 
-    Per decision: store the layer's completed transition, act, step the env, update, log.
     Learning layers act at random for their first `train.warmup` decisions, then with
     exploration noise, and update once per decision after that; frozen layers act greedily.
     """
-    recipe, learners, warmup = run.recipe, run.learners, run.recipe.train.warmup
+    recipe = run.recipe
     env = make_aec_env(recipe, active=list(phase.active))
     eval_env = make_aec_env(recipe, active=list(phase.active), evaluation=True, record=True)
     bar = tqdm(total=budget, initial=state.step, desc=f"phase {state.phase}: {'+'.join(phase.learn)}", unit="step",
                disable=not run.progress, dynamic_ncols=True, mininterval=1.0)
-    if not state.curve:
-        _evaluate(run, state, phase, eval_env, bar)
-    while state.step < budget:
-        _start_episode(env, state, recipe.train.seed)
-        for name in env.agent_iter():
-            obs, _, terminated, truncated, info = env.last()
-            learner, learns = learners[name], name in phase.learn
-            _check_finite(obs, "observation", name, state)
-            if learns and "transition" in info:
-                learner.observe(info["transition"])  # store
-            if terminated or truncated:
-                env.step(None)
-                continue
-            if state.step >= budget:
-                break
-            if not learns:  # act
-                action = learner.act(obs, explore=False)
-            else:
-                action = learner.random_action() if state.decisions[name] < warmup else learner.act(obs, explore=True)
-            _check_finite(action, "action", name, state)
-            env.step(action)  # step
-            state.step += env.advanced
-            bar.update(env.advanced)
-            if learns:  # update
-                state.decisions[name] += 1
-                if state.decisions[name] > warmup and (stats := learner.update()) is not None:
-                    _check_finite(np.array([stats.critic_loss, stats.actor_loss or 0.0]), "loss", name, state)
-                    state.losses[name].append(stats)
-            if state.step >= state.next_eval:  # log
-                _evaluate(run, state, phase, eval_env, bar)
-                state.next_eval += recipe.eval.every
-        _end_episode(run, env, state)
-    if state.curve[-1][0] != state.step:
-        _evaluate(run, state, phase, eval_env, bar)
-    bar.close()
-    env.close()
-    eval_env.close()
+    try:
+        if not state.curve:
+            _evaluate(run, state, phase, eval_env, bar)
+        while state.step < budget:
+            _start_episode(env, state, recipe.train.seed)
+            _run_episode(run, state, phase, budget, env, eval_env, bar)
+            _end_episode(run, env, state)
+        if state.curve[-1][0] != state.step:
+            _evaluate(run, state, phase, eval_env, bar)
+    finally:
+        bar.close()
+        env.close()
+        eval_env.close()
     return PhaseResult(state.phase, phase, state.step, state.curve[-1][1], _auc(recipe, state.curve))
 
 
-def _start_episode(env: Any, state: LoopState, seed: int) -> None:
+def _run_episode(run: Run, state: LoopState, phase: Phase, budget: int, env: LayeredEnv, eval_env: LayeredEnv,
+                 bar: tqdm) -> None:
+    """One training episode, or its part until the phase's budget is spent: per decision of a
+    layer, store its completed transition, act, step the env, update, log."""
+    learners, warmup = run.learners, run.recipe.train.warmup
+    for name in env.agent_iter():
+        obs, _, terminated, truncated, info = env.last()
+        learner, learns = learners[name], name in phase.learn
+        _check_finite(obs, "observation", name, state)
+        if learns and "transition" in info:
+            learner.observe(info["transition"])  # store
+        if terminated or truncated:
+            env.step(None)
+            continue
+        if state.step >= budget:
+            return
+        if not learns:  # act
+            action = learner.act(obs, explore=False)
+        else:
+            action = learner.random_action() if state.decisions[name] < warmup else learner.act(obs, explore=True)
+        _check_finite(action, "action", name, state)
+        env.step(action)  # step
+        state.step += env.advanced
+        bar.update(env.advanced)
+        if learns:  # update
+            state.decisions[name] += 1
+            if state.decisions[name] > warmup and (stats := learner.update()) is not None:
+                _check_finite(np.array([stats.critic_loss, stats.actor_loss or 0.0]), "loss", name, state)
+                state.losses[name].append(stats)
+        if state.step >= state.next_eval:  # log
+            _evaluate(run, state, phase, eval_env, bar)
+            state.next_eval += run.recipe.eval.every
+
+
+def _start_episode(env: LayeredEnv, state: LoopState, seed: int) -> None:
     """Reset the training env: the phase's first episode from its seed, later ones from its generator."""
     if state.episode == 0:
         env.reset(seed=seed + state.phase)
@@ -247,7 +256,7 @@ def _start_episode(env: Any, state: LoopState, seed: int) -> None:
     env.reset()
 
 
-def _end_episode(run: Run, env: Any, state: LoopState) -> None:
+def _end_episode(run: Run, env: LayeredEnv, state: LoopState) -> None:
     """Log a finished episode; at a boundary past the checkpoint interval, or when asked to stop, checkpoint."""
     if not env.agents:  # the episode ran to its end rather than to the budget
         run.episodes.write({"phase": state.phase, "step": state.step, "return": env.episode_return,
@@ -256,14 +265,14 @@ def _end_episode(run: Run, env: Any, state: LoopState) -> None:
     if state.step >= state.next_checkpoint or run.stop.requested:
         while state.next_checkpoint <= state.step:
             state.next_checkpoint += checkpoint_interval(run.recipe)
-        state.env_rng = env.base.unwrapped.np_random.bit_generator.state
+        state.env_rng = dict(env.base.unwrapped.np_random.bit_generator.state)
         run.save(state)
         state.env_rng = None
     if run.stop.requested:
         raise Stopped(run.stop.requested, state.phase, state.step, run.checkpoint.parent.parent)
 
 
-def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: Any, bar: tqdm) -> None:
+def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: LayeredEnv, bar: tqdm) -> None:
     """Evaluate the present layers now and log the row, with each learning layer's mean losses since the last."""
     recipe = run.recipe
     result = evaluate(eval_env, run.learners, recipe.eval.episodes, recipe.train.seed + recipe.eval.seed_offset)

@@ -1,0 +1,242 @@
+"""Runs that survive anything: killed or stopped at any moment, a resumed run ends byte for byte
+as one that never stopped; changed recipes, changed budgets and damaged checkpoints are refused."""
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import pytest
+import torch
+
+import layered.trainer as trainer
+from layered import load_recipe
+from layered.checkpoint import CheckpointError, previous
+from layered.interrupt import Stopped
+from layered.rundir import RunDirError
+from layered.trainer import Diverged, resume, train
+
+PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
+TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=150", "eval.episodes=1"]
+COMPARED = ("metrics.csv", "episodes.csv", "results.json")
+
+
+def assert_same_run(a: Path, b: Path) -> None:
+    """Byte-identical logs and results, and identical tensors in every layer checkpoint."""
+    for name in COMPARED:
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    layers = sorted(p.name for p in (a / "checkpoints").glob("*.pt") if not p.name.startswith("run"))
+    assert layers == sorted(p.name for p in (b / "checkpoints").glob("*.pt") if not p.name.startswith("run"))
+    for name in layers:
+        x, y = (torch.load(d / "checkpoints" / name, weights_only=True)["state"] for d in (a, b))
+        assert_same_state(x, y, name)
+
+
+def assert_same_state(x, y, where):
+    if isinstance(x, dict):
+        assert x.keys() == y.keys(), where
+        for key in x:
+            assert_same_state(x[key], y[key], f"{where}.{key}")
+    elif isinstance(x, torch.Tensor):
+        assert torch.equal(x, y), where
+    else:
+        assert x == y, where
+
+
+def stop_at_episode_end(monkeypatch, k: int) -> None:
+    """Ask the loop to stop at the k-th episode end, as SIGINT would."""
+    original, calls = trainer._end_episode, []
+
+    def end_episode(run, env, state):
+        calls.append(1)
+        if len(calls) == k:
+            run.stop.requested = "SIGINT"
+        original(run, env, state)
+
+    monkeypatch.setattr(trainer, "_end_episode", end_episode)
+
+
+def test_a_run_stopped_at_an_episode_end_resumes_to_the_same_files(tmp_path, monkeypatch):
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
+    train(recipe, tmp_path / "whole", max_steps=700, progress=False, label="x")
+    for k in (1, 3, 4, 6):  # first phase, both sides of the phase end, second phase
+        monkeypatch.undo()
+        stop_at_episode_end(monkeypatch, k)
+        out = tmp_path / f"stopped-{k}"
+        with pytest.raises(Stopped) as stopped:
+            train(recipe, out, max_steps=700, progress=False, label="x")
+        assert f"layered resume {out}" in str(stopped.value) and not (out / "results.json").exists()
+        monkeypatch.undo()
+        train(recipe, out, max_steps=700, progress=False, label="x", resume=True)
+        assert_same_run(tmp_path / "whole", out)
+
+
+def test_metrics_keep_every_layers_columns_in_every_phase(tmp_path):
+    train(load_recipe(PENDULUM / "tla-c.toml", TINY), tmp_path, max_steps=300, progress=False)
+    header, *rows = (tmp_path / "metrics.csv").read_text().splitlines()
+    assert "decided_fast" in header and "critic_loss_fast" in header and "acted_slow" in header
+    fast = header.split(",").index("acted_fast")
+    assert {row.split(",")[0] for row in rows} == {"0", "1"}
+    assert all((row.split(",")[fast] == "") == (row.split(",")[0] == "0") for row in rows)  # fast present in phase 1
+
+
+def test_resume_refuses_a_changed_recipe_or_budget_naming_the_difference(tmp_path, monkeypatch):
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
+    stop_at_episode_end(monkeypatch, 2)
+    with pytest.raises(Stopped):
+        train(recipe, tmp_path, max_steps=700, progress=False)
+    monkeypatch.undo()
+    with pytest.raises(RunDirError, match="started with --steps 700, not --steps 900"):
+        resume(tmp_path, max_steps=900)
+    changed = load_recipe(PENDULUM / "tla-c.toml", [*TINY, "train.warmup=60"])
+    with pytest.raises(CheckpointError, match=r"recipe differs .*train\.warmup: 50 -> 60"):
+        train(changed, tmp_path, max_steps=700, progress=False, resume=True)
+    with pytest.raises(RunDirError, match="holds a stopped run; continue it with `layered resume"):
+        train(recipe, tmp_path, max_steps=700, progress=False)
+    resume(tmp_path, progress=False)
+    assert (tmp_path / "results.json").exists()
+
+
+def test_a_damaged_checkpoint_falls_back_to_the_previous_one(tmp_path, monkeypatch, capsys):
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
+    train(recipe, tmp_path / "whole", max_steps=700, progress=False, label="x")
+    out = tmp_path / "run"
+    stop_at_episode_end(monkeypatch, 3)
+    with pytest.raises(Stopped):
+        train(recipe, out, max_steps=700, progress=False, label="x")
+    monkeypatch.undo()
+    newest = out / "checkpoints" / "run.pt"
+    assert previous(newest).exists()
+    newest.write_bytes(newest.read_bytes()[:1000])  # truncated
+    (out / "checkpoints" / ".run.pt.abc123").write_bytes(b"half a write")  # a write cut off by a kill
+    resume(out, progress=False)
+    assert "using the previous checkpoint run.prev.pt" in capsys.readouterr().err
+    assert_same_run(tmp_path / "whole", out)
+    assert not list((out / "checkpoints").glob(".run.pt.*"))
+
+
+def test_no_usable_checkpoint_is_refused_and_nothing_changes(tmp_path, monkeypatch):
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
+    stop_at_episode_end(monkeypatch, 3)
+    with pytest.raises(Stopped):
+        train(recipe, tmp_path, max_steps=700, progress=False)
+    monkeypatch.undo()
+    for path in (tmp_path / "checkpoints" / "run.pt", previous(tmp_path / "checkpoints" / "run.pt")):
+        path.write_bytes(b"\0" * 64)
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    with pytest.raises(CheckpointError, match="no usable checkpoint is left"):
+        resume(tmp_path, progress=False)
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
+def test_divergence_stops_naming_layer_phase_and_step_and_keeps_the_last_checkpoint(tmp_path, monkeypatch):
+    from layered.learners.base import UpdateStats
+    from layered.learners.td3 import TD3
+
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
+    original, calls = TD3.update, []
+
+    def update(self):
+        calls.append(1)
+        stats = original(self)
+        return UpdateStats(float("nan"), None) if len(calls) == 400 else stats
+
+    monkeypatch.setattr(TD3, "update", update)
+    with pytest.raises(Diverged, match="layer 'fast' met a non-finite loss in phase 1 at step 325"):
+        train(recipe, tmp_path, max_steps=700, progress=False)
+    monkeypatch.undo()
+    resume(tmp_path, progress=False)  # from the last checkpoint before the divergence
+    assert (tmp_path / "results.json").exists()
+
+
+def layered(*args, **kwargs):
+    return subprocess.Popen([sys.executable, "-m", "layered.cli", *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **kwargs)
+
+
+CLI_RUN = [PENDULUM / "tla-c.toml", *TINY, "--steps", 1500, "--threads", 1]
+
+
+def kill_when(proc: subprocess.Popen, ready, timeout: float = 30.0) -> bool:
+    """SIGKILL `proc` as soon as `ready()` holds (or at `timeout`); False if it finished first."""
+    deadline = time.monotonic() + timeout
+    while proc.poll() is None:
+        if ready() or time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            return True
+        time.sleep(0.0005)
+    return False
+
+
+def writing(run_dir: Path) -> bool:
+    """Whether a checkpoint write is under way (its temporary file exists)."""
+    return bool(list((run_dir / "checkpoints").glob(".run.pt.*")))
+
+
+def passed(moment: float) -> bool:
+    return time.monotonic() >= moment
+
+
+def test_killed_with_sigkill_at_random_moments_and_resumed_ends_byte_identical(tmp_path):
+    """The promise: SIGKILL anywhere, once mid-write of a checkpoint, resume each time, same files."""
+    whole = tmp_path / "whole"
+    assert layered("train", *CLI_RUN, "--out", whole).wait() == 0
+    out, rng = tmp_path / "killed", random.Random(7)
+    proc, kills, mid_write = layered("train", *CLI_RUN, "--out", out), 0, False
+    for k in range(4):
+        if k == 1:  # as soon as a checkpoint is being written
+            ready = partial(writing, out)
+        else:
+            ready = partial(passed, time.monotonic() + rng.uniform(0.5, 3.0))
+        if not kill_when(proc, ready, timeout=8.0):
+            break
+        kills += 1
+        mid_write |= k == 1 and ready()
+        started = (out / "run.json").exists()  # killed before it wrote anything: the retry is the same train
+        proc = layered("resume", out, "--threads", 1) if started else layered("train", *CLI_RUN, "--out", out)
+    _, err = proc.communicate()
+    assert proc.returncode == 0, err
+    assert kills == 4, "the run finished before it was killed four times; lengthen it"
+    assert_same_run(whole, out)
+    print(f"killed {kills} times, once mid-write: {mid_write}")
+
+
+def test_sigint_and_sigterm_stop_cleanly_with_a_checkpoint_and_one_line(tmp_path):
+    whole = tmp_path / "whole"
+    assert layered("train", *CLI_RUN, "--out", whole).wait() == 0
+    out = tmp_path / "stopped"
+    for signum, code, command in ((signal.SIGINT, 130, ("train", *CLI_RUN, "--out", out)),
+                                  (signal.SIGTERM, 143, ("resume", out, "--threads", 1))):
+        checkpoint = out / "checkpoints" / "run.pt"
+        before = checkpoint.stat().st_mtime_ns if checkpoint.exists() else None
+        proc = layered(*command)
+        while (not checkpoint.exists() or checkpoint.stat().st_mtime_ns == before) and proc.poll() is None:
+            time.sleep(0.01)  # until this process has written a checkpoint of its own
+        time.sleep(0.3)
+        os.kill(proc.pid, signum)
+        _, err = proc.communicate()
+        assert proc.returncode == code, err
+        assert "Traceback" not in err and f"continue with: layered resume {out}" in err.splitlines()[-1]
+    assert layered("resume", out, "--threads", 1).wait() == 0
+    assert_same_run(whole, out)
+
+
+def test_train_into_a_stopped_run_says_how_to_resume_and_force_starts_over(tmp_path):
+    out = tmp_path / "run"
+    proc = layered("train", *CLI_RUN, "--out", out)
+    while not (out / "checkpoints" / "run.pt").exists():
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait()
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    proc = layered("train", *CLI_RUN, "--out", out)
+    _, err = proc.communicate()
+    assert proc.returncode == 2 and f"layered resume {out}" in err and len(err.strip().splitlines()) == 1
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before
+    proc = layered("train", *CLI_RUN, "train.seed=1", "--out", out, "--force")
+    assert proc.wait() == 0 and load_recipe(out / "recipe.toml").train.seed == 1
