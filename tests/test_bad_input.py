@@ -1,0 +1,73 @@
+"""Every bad input is refused before anything is written: exit 2, one line, no traceback."""
+
+from pathlib import Path
+
+import pytest
+
+from layered.cli import main
+
+RECIPES = Path(__file__).parent.parent / "recipes"
+TLA_C = RECIPES / "pendulum" / "tla-c.toml"
+TLA_O = RECIPES / "pendulum" / "tla-o.toml"
+
+
+def files(tmp_path: Path) -> dict[str, str]:
+    """A recipe directory of the bad kinds a user can hand over."""
+    tmp_path.mkdir()
+    (tmp_path / "latin1.toml").write_bytes("# r\xe9glage\n[env]\nid = 'Pendulum-v1'\n".encode("latin-1"))
+    (tmp_path / "folder.toml").mkdir()
+    (tmp_path / "cartpole.toml").write_text('[env]\nid = "CartPole-v1"\n[[layers]]\nname = "a"\nperiod = 1\n')
+    (tmp_path / "a-file").write_text("not a directory")
+    return {"tmp": str(tmp_path)}
+
+
+CASES = {
+    "recipe not UTF-8": (["train", "{tmp}/latin1.toml"], "not UTF-8 text"),
+    "recipe is a directory": (["train", "{tmp}/folder.toml"], "is a directory, not a recipe file"),
+    "missing recipe": (["train", "{tmp}/nope.toml"], "no such recipe file"),
+    "discrete action space": (["train", "{tmp}/cartpole.toml"], "action space is Discrete"),
+    "gate learner without a gate": (["train", str(TLA_C), "layers.slow.learner.kind=td3-gate"],
+                                    "learner 'td3-gate' cannot drive layer 'slow'"),
+    "temporl without repeats": (["train", str(TLA_O), "layers.fast.learner.kind=temporl"],
+                                "learner 'temporl' cannot drive layer 'fast'"),
+    "unknown plugin": (["train", str(TLA_C), "--plugin", "{tmp}/nope.py"], "plugin"),
+    "zero steps": (["train", str(TLA_C), "--steps", "0"], "--steps: must be positive"),
+    "steps not a number": (["train", str(TLA_C), "--steps", "lots"], "--steps: expected a whole number"),
+    "zero threads": (["train", str(TLA_C), "--threads", "0"], "--threads: must be positive"),
+    "negative seed": (["train", str(TLA_C), "--seed", "-1"], "train.seed"),
+    "unknown key": (["train", str(TLA_C), "train.warmpu=5"], "train.warmpu: unknown key"),
+    "empty hidden layer": (["train", str(TLA_C), "learner.hidden=[0, 8]"], "learner.hidden[0]"),
+    "reversed return range": (["train", str(TLA_C), "env.return_range=[0, -10]"], "worst return must be below"),
+    "out is a file": (["train", str(TLA_C), "--out", "{tmp}/a-file"], "is a file, not a directory"),
+    "unknown option": (["train", str(TLA_C), "--stpes", "5"], "unrecognized arguments: --stpes"),
+    "resume a non-run": (["resume", "{tmp}"], "is not a run directory"),
+    "eval a non-run": (["eval", "{tmp}"], "is not a run directory"),
+    "eval zero episodes": (["eval", "{tmp}", "--episodes", "0"], "--episodes: must be positive"),
+    "sweep zero seeds": (["sweep", str(TLA_C), "--seeds", "0"], "--seeds: must be positive"),
+}
+
+
+@pytest.mark.parametrize("case", CASES, ids=list(CASES))
+def test_bad_input_exits_2_with_one_line_and_writes_nothing(case, tmp_path, capsys, monkeypatch):
+    values = files(tmp_path / "in")
+    monkeypatch.chdir(tmp_path)  # a default run directory would land in ./runs
+    argv, says = CASES[case]
+    argv = [a.format(**values) for a in argv]
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    try:
+        code = main([*argv, *(["--out", str(tmp_path / "out")] if argv[0] == "train" and "--out" not in argv else [])])
+    except SystemExit as e:
+        code = e.code
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert says in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+
+
+def test_a_budget_below_a_layers_warm_up_is_named_before_training(tmp_path, capsys):
+    code = main(["train", str(TLA_C), "learner.hidden=[8]", "eval.episodes=1", "--steps", "300",
+                 "--out", str(tmp_path / "run"), "--threads", "1"])
+    err = capsys.readouterr().err
+    assert code == 0
+    warning = "layered: warning: phase 0 runs 300 steps, but layer 'slow' acts at random for its first 1000 decisions"
+    assert err.index(warning) < err.index("phase 0: slow")
