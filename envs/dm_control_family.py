@@ -65,6 +65,8 @@ class DmControlEnv(gym.Env[np.ndarray, np.ndarray]):
 class DmControlFamily(EnvFamily):
     """The dm_control suite's (domain, task) pairs, named `domain-task`."""
 
+    example = "dmc:cartpole-balance"
+
     def _split(self, name: str) -> tuple[str, str]:
         from dm_control import suite
 

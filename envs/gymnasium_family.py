@@ -25,6 +25,8 @@ RETURN_RANGES: dict[str, tuple[float, float]] = {
 class GymnasiumFamily(EnvFamily):
     """Any id in Gymnasium's registry (recipes check that its spaces suit layers)."""
 
+    example = "gym:Pendulum-v1"
+
     def make(self, name: str, render_mode: str | None = None) -> gym.Env:
         self.info(name)
         return gym.make(name, render_mode=render_mode)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -24,6 +25,9 @@ class EnvInfo:
 
 class EnvFamily(ABC):
     """A source of environments sharing one naming scheme."""
+
+    example: ClassVar[str]
+    """One id of the family (with its `family:` prefix): the registry's tests train and resume on it."""
 
     @abstractmethod
     def make(self, name: str, render_mode: str | None = None) -> gym.Env:

@@ -42,6 +42,8 @@ def _register() -> None:
 class RoboticsFamily(EnvFamily):
     """Any id that gymnasium-robotics registers (recipes check that its spaces suit layers)."""
 
+    example = "robotics:PointMaze_UMaze-v3"
+
     def make(self, name: str, render_mode: str | None = None) -> gym.Env:
         self.info(name)
         env = gym.make(name, render_mode=render_mode)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -11,6 +12,7 @@ import torch
 os.environ.setdefault("MUJOCO_GL", "egl")
 torch.set_num_threads(1)
 
+import layered.trainer as trainer  # noqa: E402
 from layered import Recipe, load_recipe  # noqa: E402
 
 
@@ -31,3 +33,38 @@ def tiny() -> list[str]:
     """Overrides that make training a few hundred steps cheap."""
     return ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
             "eval.every=100", "eval.episodes=1"]
+
+
+def assert_same_run(a: Path, b: Path) -> None:
+    """Byte-identical logs and results, and identical tensors in every layer checkpoint."""
+    for name in ("metrics.csv", "episodes.csv", "results.json"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    layers = sorted(p.name for p in (a / "checkpoints").glob("*.pt") if not p.name.startswith("run"))
+    assert layers == sorted(p.name for p in (b / "checkpoints").glob("*.pt") if not p.name.startswith("run"))
+    for name in layers:
+        x, y = (torch.load(d / "checkpoints" / name, weights_only=True)["state"] for d in (a, b))
+        assert_same_state(x, y, name)
+
+
+def assert_same_state(x, y, where):
+    if isinstance(x, dict):
+        assert x.keys() == y.keys(), where
+        for key in x:
+            assert_same_state(x[key], y[key], f"{where}.{key}")
+    elif isinstance(x, torch.Tensor):
+        assert torch.equal(x, y), where
+    else:
+        assert x == y, where
+
+
+def stop_at_episode_end(monkeypatch, k: int) -> None:
+    """Ask the loop to stop at the k-th episode end, as SIGINT would."""
+    original, calls = trainer._end_episode, []
+
+    def end_episode(run, env, state):
+        calls.append(1)
+        if len(calls) == k:
+            run.stop.requested = "SIGINT"
+        original(run, env, state)
+
+    monkeypatch.setattr(trainer, "_end_episode", end_episode)

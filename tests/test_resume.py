@@ -11,9 +11,8 @@ from functools import partial
 from pathlib import Path
 
 import pytest
-import torch
+from conftest import assert_same_run, stop_at_episode_end
 
-import layered.trainer as trainer
 from layered import load_recipe
 from layered.checkpoint import CheckpointError, previous
 from layered.interrupt import Stopped
@@ -22,42 +21,6 @@ from layered.trainer import Diverged, resume, train
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=150", "eval.episodes=1"]
-COMPARED = ("metrics.csv", "episodes.csv", "results.json")
-
-
-def assert_same_run(a: Path, b: Path) -> None:
-    """Byte-identical logs and results, and identical tensors in every layer checkpoint."""
-    for name in COMPARED:
-        assert (a / name).read_bytes() == (b / name).read_bytes(), name
-    layers = sorted(p.name for p in (a / "checkpoints").glob("*.pt") if not p.name.startswith("run"))
-    assert layers == sorted(p.name for p in (b / "checkpoints").glob("*.pt") if not p.name.startswith("run"))
-    for name in layers:
-        x, y = (torch.load(d / "checkpoints" / name, weights_only=True)["state"] for d in (a, b))
-        assert_same_state(x, y, name)
-
-
-def assert_same_state(x, y, where):
-    if isinstance(x, dict):
-        assert x.keys() == y.keys(), where
-        for key in x:
-            assert_same_state(x[key], y[key], f"{where}.{key}")
-    elif isinstance(x, torch.Tensor):
-        assert torch.equal(x, y), where
-    else:
-        assert x == y, where
-
-
-def stop_at_episode_end(monkeypatch, k: int) -> None:
-    """Ask the loop to stop at the k-th episode end, as SIGINT would."""
-    original, calls = trainer._end_episode, []
-
-    def end_episode(run, env, state):
-        calls.append(1)
-        if len(calls) == k:
-            run.stop.requested = "SIGINT"
-        original(run, env, state)
-
-    monkeypatch.setattr(trainer, "_end_episode", end_episode)
 
 
 def test_a_run_stopped_at_an_episode_end_resumes_to_the_same_files(tmp_path, monkeypatch):

@@ -23,6 +23,8 @@ class ObservationNoise(gym.ObservationWrapper):
 class NoisyFamily(EnvFamily):
     """The environment `name` of any family, observed with noise of std 0.05."""
 
+    example = "noisy:Pendulum-v1"
+
     def make(self, name, render_mode=None):
         return ObservationNoise(make_env(name, render_mode=render_mode), std=0.05)
 
