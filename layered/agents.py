@@ -131,6 +131,7 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         rewards = self.stack.layer_rewards(float(reward), composition)
         for i, r in rewards.items():
             self.rewards[self.stack.layers[i].name] += r
+        self.stack.tick()
         self.stack.record(rewards, self._obs, ended=terminated or truncated)
         if self.record:
             sizes = {self.stack.layers[i].name: float(np.mean(np.abs(c))) for i, c in composition.contributions.items()}
@@ -138,7 +139,6 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self.episode_return += float(reward)
         self.episode_steps += 1
         self._decided = []
-        self.stack.tick()
         if terminated or truncated:
             for name in self.agents:
                 self.terminations[name] = bool(terminated)

@@ -177,27 +177,54 @@ class Stack:
             out.fill(0.0)
 
     def observation(self, i: int, obs: np.ndarray) -> np.ndarray:
-        """What layer i sees: the env observation, the actions its named slower layers hold, and
-        its own outputs still in flight (oldest first) when it acts with a delay."""
+        """What layer i sees before its next decision: the env observation; of each slower layer it
+        names, the output that will be in effect when i's output takes effect (with delays, not
+        necessarily the one held now); and, when it acts with a delay, its own outputs in flight
+        (oldest first) as they will be executed: their action part is the contribution each will
+        make when it lands, after thresholds and gates (zero where a gate above commits)."""
+        layer = self.layers[i]
+        lands = self.upcoming(i) + layer.delay * layer.period
         parts = [np.asarray(obs, np.float32).ravel()]
-        parts += [self.held[j][: self.action_dim] for j in self.layers[i].sees]
-        parts.append(self.inflight[i].ravel())
+        parts += [self.in_effect(j, lands)[: self.action_dim] for j in layer.sees]
+        parts += [self._as_executed(i, k) for k in range(layer.delay)]
         return np.concatenate(parts)
 
-    def _route(self, position: int, i: int) -> Route:
+    def upcoming(self, j: int) -> int:
+        """The step of layer j's next decision on its schedule (now, if it is due and has not decided)."""
+        period = self.layers[j].period
+        return max(-(-self.t // period) * period, self.resume_at[j])
+
+    def in_effect(self, j: int, step: int) -> np.ndarray:
+        """Layer j's output in effect at base `step` (>= now) as far as j has decided: the held one
+        until its next decision, then its outputs in flight in turn, then the newest of them."""
+        queue, period, upcoming = self.inflight[j], self.layers[j].period, self.upcoming(j)
+        if step < upcoming or not len(queue):
+            return self.held[j]
+        return queue[min((step - upcoming) // period, len(queue) - 1)]
+
+    def _as_executed(self, i: int, k: int) -> np.ndarray:
+        """Layer i's k-th output in flight with its action part replaced by the contribution it will
+        make when it lands, composed with the outputs the other layers will then have in effect."""
+        lands = self.upcoming(i) + k * self.layers[i].period
+        entry = self.inflight[i][k]
+        outputs = [entry if j == i else self.in_effect(j, lands) for j in range(len(self.layers))]
+        executed = self._walk(outputs).contributions.get(i, np.zeros(self.action_dim, np.float32))
+        return np.concatenate([executed, entry[self.action_dim:]])
+
+    def _route(self, position: int, i: int, output: np.ndarray) -> Route:
         # The fastest present layer has no one below in this phase: its output just joins the sum.
         if position == len(self.active) - 1:
             return Route.ADD
         combiner = self.layers[i].combiner
         assert combiner is not None, "only the fastest layer has no combiner, and it is always last"
-        return combiner.route(self.held[i][: self.action_dim + combiner.gate_dims])
+        return combiner.route(output[: self.action_dim + combiner.gate_dims])
 
     def next_due(self, start: int = 0) -> int | None:
         """The first present layer with index >= start that decides at the current step, if any."""
         for position, i in enumerate(self.active):
             if i >= start and self.t % self.layers[i].period == 0 and self.t >= self.resume_at[i]:
                 return i
-            if self._route(position, i) is Route.COMMIT:
+            if self._route(position, i, self.held[i]) is Route.COMMIT:
                 return None
         return None
 
@@ -219,16 +246,20 @@ class Stack:
         self.held[i] = output
 
     def compose(self) -> Composition:
-        """Walk the present layers slowest first and merge their held outputs into the action."""
+        """The executed action of this step: the present layers' held outputs, merged."""
+        return self._walk(self.held)
+
+    def _walk(self, outputs: Sequence[np.ndarray]) -> Composition:
+        """Walk the present layers slowest first and merge `outputs` (one per layer) into the action."""
         total = np.zeros(self.action_dim, np.float32)
         contributions: dict[int, np.ndarray] = {}
         routes: dict[int, Route] = {}
         admit_by: Combiner | None = None
         for position, i in enumerate(self.active):
-            own = self.held[i][: self.action_dim]
+            own = outputs[i][: self.action_dim]
             if admit_by is not None:
                 own = admit_by.admit(total, own, self.low, self.high)
-            route = routes[i] = self._route(position, i)
+            route = routes[i] = self._route(position, i, outputs[i])
             contributions[i] = np.zeros_like(own) if route is Route.DEFER else own
             total = total + contributions[i]
             if route is Route.COMMIT:
@@ -263,9 +294,10 @@ class Stack:
         return out
 
     def record(self, rewards: dict[int, float], obs: np.ndarray, ended: bool) -> None:
-        """Book one executed base step into each deciding layer's transition under way: one more
-        step elapsed and, for a layer that repeats, (its observation, its reward) at the end of
-        each of its periods (or of the episode). `rewards` are the step's `layer_rewards`."""
+        """Book the base step just executed (and ticked past) into each deciding layer's transition
+        under way: one more step elapsed and, for a layer that repeats, (its observation, its
+        reward) at the end of each of its periods (or of the episode). `rewards` are the step's
+        `layer_rewards`."""
         for i, r in rewards.items():
             decision, layer = self.decisions[i], self.layers[i]
             if decision is None:
@@ -273,7 +305,7 @@ class Stack:
             decision.elapsed += 1
             if layer.layout.repeats:
                 decision.period_reward += r
-                if (self.t + 1) % layer.period == 0 or ended:
+                if self.t % layer.period == 0 or ended:
                     decision.path.append((self.observation(i, obs), decision.period_reward))
                     decision.period_reward = 0.0
 

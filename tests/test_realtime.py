@@ -1,0 +1,124 @@
+"""The real-time (delayed) setting, traced by hand: at every decision, what each layer sees of the
+slower layers and of its own outputs in flight, and what the environment executes."""
+
+import numpy as np
+import pytest
+from gymnasium.spaces import Box
+
+from layered import load_recipe
+from layered.stack import Stack
+
+OBS = Box(-1.0, 1.0, (1,), np.float32)
+ACT = Box(-2.0, 2.0, (1,), np.float32)
+# Each decision outputs its own label's value, so a value seen names the decision it came from:
+# slow decision k outputs S[k], mid decision k outputs M[k], the fast decision at step t F[t].
+S = [0.5, 0.6, 0.7, 0.8]
+M = [0.05, 0.06, 0.07, 0.08, 0.09]
+F = [0.001 * (t + 1) for t in range(12)]
+VALUE = {f"{name}{k}": v for name, values in (("S", S), ("M", M), ("F", F)) for k, v in enumerate(values)}
+VALUE["0"] = 0.0
+
+
+def realtime_stack(periods, delays, evaluation=False, threshold=None) -> Stack:
+    names = [f"l{k}" for k in range(len(periods))]
+    layers = [{"name": n, "period": p, "delay": d, "sees": ["obs", *names[:k]]}
+              for k, (n, p, d) in enumerate(zip(names, periods, delays, strict=True))]
+    recipe = load_recipe({"env": {"id": "Pendulum-v1"}, "layers": layers})
+    return Stack(recipe, OBS, ACT, evaluation=evaluation, threshold=threshold)
+
+
+def play(stack: Stack, steps: int, outputs=None):
+    """Step the stack, each layer deciding its scripted outputs in turn; per decision (step, layer,
+    what it saw of the slower layers, what it saw in flight), and the executed action per step."""
+    counters = [0] * len(stack.layers)
+    series = outputs or ([S, F] if len(stack.layers) == 2 else [S, M, F])
+    seen, executed = [], []
+    for t in range(steps):
+        i = stack.next_due(0)
+        while i is not None:
+            obs = stack.observation(i, np.zeros(1, np.float32))
+            slower, inflight = obs[1:1 + i].tolist(), obs[1 + i:].tolist()
+            seen.append((t, i, slower, inflight))
+            stack.decide(i, obs, np.array([series[i][counters[i]]], np.float32))
+            counters[i] += 1
+            i = stack.next_due(i + 1)
+        executed.append(float(stack.compose().action[0]))
+        stack.tick()
+    return seen, executed
+
+
+def values(*labels):
+    return [pytest.approx(VALUE[label]) for label in labels]
+
+
+def sums(*rows):
+    return [pytest.approx(sum(VALUE[label] for label in row.split("+"))) for row in rows]
+
+
+def test_periods_2_1_each_output_landing_one_of_its_own_periods_later():
+    """The paper's setting: slow output chosen at 2k acts at 2k+2 and 2k+3; fast output chosen at t acts at t+1."""
+    seen, executed = play(realtime_stack([2, 1], [1, 1]), 7)
+    fast = [(t, slower, inflight) for t, i, slower, inflight in seen if i == 1]
+    # at step t the fast layer sees the slow output that will act at t+1, when its own output acts
+    assert [s for _, s, _ in fast] == [values(x) for x in ("0", "S0", "S0", "S1", "S1", "S2", "S2")]
+    assert [f for _, _, f in fast] == [values(x) for x in ("0", "F0", "F1", "F2", "F3", "F4", "F5")]
+    slow = [(t, inflight) for t, i, _, inflight in seen if i == 0]
+    assert slow == [(0, values("0")), (2, values("S0")), (4, values("S1")), (6, values("S2"))]
+    assert executed == sums("0", "F0", "S0+F1", "S0+F2", "S1+F3", "S1+F4", "S2+F5")
+
+
+def test_periods_4_1_with_a_delay_of_one_decision_each():
+    seen, executed = play(realtime_stack([4, 1], [1, 1]), 9)
+    fast = [slower for _, i, slower, _ in seen if i == 1]
+    assert fast == [values(x) for x in ("0", "0", "0", "S0", "S0", "S0", "S0", "S1", "S1")]
+    assert executed == sums("0", "F0", "F1", "F2", "S0+F3", "S0+F4", "S0+F5", "S0+F6", "S1+F7")
+
+
+def test_three_layers_4_2_1_each_delayed_one_decision():
+    seen, executed = play(realtime_stack([4, 2, 1], [1, 1, 1]), 9)
+    mid = [(t, slower) for t, i, slower, _ in seen if i == 1]
+    assert mid == [(0, values("0")), (2, values("S0")), (4, values("S0")), (6, values("S1")), (8, values("S1"))]
+    fast = [slower for _, i, slower, _ in seen if i == 2]  # (slow, mid) in effect one step later
+    assert fast == [values(*x) for x in (("0", "0"), ("0", "M0"), ("0", "M0"), ("S0", "M1"), ("S0", "M1"),
+                                         ("S0", "M2"), ("S0", "M2"), ("S1", "M3"), ("S1", "M3"))]
+    assert executed == sums("0", "F0", "M0+F1", "M0+F2", "S0+M1+F3", "S0+M1+F4", "S0+M2+F5", "S0+M2+F6",
+                            "S1+M3+F7")
+
+
+@pytest.mark.parametrize(("periods", "delays"), [
+    ([2, 1], [1, 1]), ([4, 1], [1, 1]), ([4, 2, 1], [1, 1, 1]), ([4, 1], [2, 1]), ([4, 1], [1, 3]),
+    ([8, 2, 1], [1, 2, 1]), ([4, 1], [0, 0]),
+], ids=str)
+def test_every_layer_sees_the_slower_outputs_its_own_output_is_added_to(periods, delays):
+    """Whenever the slower layers' outputs land no sooner than the observer's, what a layer sees of
+    them at a decision is exactly what acts beside its output when that output lands."""
+    stack = realtime_stack(periods, delays)
+    rng = np.random.default_rng(0)
+    series = [list(rng.uniform(-0.5, 0.5, 64)) for _ in periods]
+    counters, views, held = [0] * len(periods), [], []
+    for t in range(40):
+        i = stack.next_due(0)
+        while i is not None:
+            obs = stack.observation(i, np.zeros(1, np.float32))
+            views.append((t + delays[i] * periods[i], i, obs[1:1 + i].tolist()))
+            stack.decide(i, obs, np.array([series[i][counters[i]]], np.float32))
+            counters[i] += 1
+            i = stack.next_due(i + 1)
+        held.append([float(h[0]) for h in stack.held])
+        stack.tick()
+    checked = [(lands, i, view) for lands, i, view in views if lands < 40]
+    assert len(checked) > 30
+    for lands, i, view in checked:
+        assert view == pytest.approx(held[lands][:i]), (lands, i)
+
+
+def test_at_evaluation_an_output_in_flight_shows_what_the_threshold_lets_through():
+    # threshold 0.3 x max action 2 = 0.6: a fast correction of 0.1 is dropped when it lands, one of 1.0 is not
+    stack = realtime_stack([2, 1], [1, 1], evaluation=True, threshold=0.3)
+    seen, executed = play(stack, 4, outputs=[[0.5, 0.5], [0.1, 1.0, 0.1, 1.0]])
+    fast_inflight = [inflight for _, i, _, inflight in seen if i == 1]
+    assert fast_inflight == [values("0"), [0.0], [pytest.approx(1.0)], [0.0]]
+    assert executed == [0.0, 0.0, pytest.approx(1.5), 0.5]
+    training = realtime_stack([2, 1], [1, 1])
+    seen, _ = play(training, 4, outputs=[[0.5, 0.5], [0.1, 1.0, 0.1, 1.0]])
+    assert [inflight for _, i, _, inflight in seen if i == 1][1] == [pytest.approx(0.1)]
