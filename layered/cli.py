@@ -79,6 +79,9 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("run_dir", type=Path, help="run directory of a trained run")
     ev.add_argument("--episodes", type=_positive, help="episodes (default: the recipe's eval.episodes)")
     ev.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
+    ev.add_argument("--weights", choices=["final", "best"],
+                    help="each phase's final weights or those of its best evaluation (default: the recipe's "
+                    "train.select)")
     ev.add_argument("--threads", type=_positive, help="torch threads")
     _plugin_option(ev, "besides those the run was trained with")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
@@ -162,7 +165,7 @@ def _eval(args: argparse.Namespace) -> int:
         args.gallery = active[-1]
     if args.gallery is not None and args.gallery not in active:
         return _fail(f"--gallery: no layer {args.gallery!r} in this stack; layers: {', '.join(active)}")
-    learners = load_learners(recipe, args.run_dir)
+    learners = load_learners(recipe, args.run_dir, args.weights)
     episodes = args.episodes or recipe.eval.episodes
     seed = recipe.train.seed + recipe.eval.seed_offset
     out_dir = args.run_dir / "eval"
@@ -192,7 +195,8 @@ def _evaluate_once(args: argparse.Namespace, recipe: Any, learners: Any, active:
     threshold = args.threshold if args.threshold is not None else "recipe"
     row = {"phase": "eval", "learn": [], "active": active, "auc": None, "threshold": threshold,
            "episodes": episodes, **result.row()}
-    out = out_dir / f"threshold-{threshold}-episodes-{episodes}.json"
+    weights = f"-{args.weights}" if args.weights else ""
+    out = out_dir / f"threshold-{threshold}-episodes-{episodes}{weights}.json"
     out.write_text(json.dumps(row, indent=2))
     print(results_table([row]))
     print(f"written to {out}")

@@ -117,6 +117,10 @@ class TrainConfig(Section):
     checkpoint_every: int | None = Field(default=None, gt=0)
     """Environment steps between checkpoints of the whole training state, each taken at the next
     episode end; default `eval.every`. A stopped run resumes from its last checkpoint."""
+    select: Literal["final", "best"] = "final"
+    """Which weights of a finished phase's learning layers later phases and `layered eval` use:
+    those at the phase's end (`final`) or at its best evaluation (`best`, the paper authors'
+    protocol). Both are saved, and both are evaluated again on fresh episodes (eval.fresh_episodes)."""
     warmup: int = Field(default=1000, ge=0)
     """Decisions of each learning layer taken uniformly at random before updates start."""
     discount: Literal["decision", "step"] = "decision"
@@ -141,6 +145,11 @@ class EvalConfig(Section):
     """Deterministic episodes per evaluation."""
     seed_offset: int = 100
     """The evaluation environment is seeded with train.seed plus this offset."""
+    fresh_episodes: int = Field(default=100, ge=0)
+    """At the end of each phase its final and its best weights are each evaluated on this many
+    fresh episodes: the best of several evaluations overestimates, these do not. 0 skips it."""
+    fresh_seed_offset: int = 1000
+    """The fresh episodes' environment is seeded with train.seed plus this offset."""
 
 
 class Recipe(Section):

@@ -25,7 +25,8 @@ def _macs(value: float) -> str:
 
 
 def results_table(rows: Sequence[dict[str, Any]]) -> str:
-    """Markdown table of per-phase (or per-evaluation) results rows as written to results.json."""
+    """Markdown table of per-phase (or per-evaluation) results rows as written to results.json; for
+    phases, a second table of the final and best weights evaluated again on fresh episodes."""
     columns = ["phase", "learns", "present", "return", "AUC", "action repetition", "jerk", "decisions / episode",
                "compute / episode", "evaluated", "acted", "mean \\|contribution\\|"]
     lines = ["| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
@@ -37,6 +38,18 @@ def results_table(rows: Sequence[dict[str, Any]]) -> str:
             f"| {r['jerk']:.3f} | {r['decisions']:.1f} of {r['episode_steps']:.0f} | {_macs(r['compute'])} "
             f"| {_activity(r, 'decided_')} | {_activity(r, 'acted_')} | {_activity(r, 'contribution_', '{:.3f}')} |"
         )
+    fresh = [r for r in rows if "fresh_final_return_mean" in r]
+    if fresh:
+        lines += ["", "Final and best weights of each phase, each evaluated again on fresh episodes (the best "
+                  "evaluation's own return is biased upwards by the choice):", "",
+                  "| phase | final: return | final: action repetition | best: step | best: return at that "
+                  "evaluation | best: return | best: action repetition |", "|---|---|---|---|---|---|---|"]
+        lines += [
+            f"| {r['phase']} | {r['fresh_final_return_mean']:.1f} ± {r['fresh_final_return_std']:.1f} "
+            f"| {100 * r['fresh_final_repetition']:.1f}% | {r['best_step']} | {r['best_return_mean']:.1f} "
+            f"| {r['fresh_best_return_mean']:.1f} ± {r['fresh_best_return_std']:.1f} "
+            f"| {100 * r['fresh_best_repetition']:.1f}% |" for r in fresh
+        ]
     return "\n".join(lines)
 
 
@@ -106,6 +119,11 @@ TABLE_2: list[Metric] = [("repetition", "action repetition", "{:.1%}"), ("decisi
 EXTRA_MEASURES: list[Metric] = [("jerk", "jerk", "{:.3f}"), ("compute", "MACs / episode", "{:.3g}")]
 TABLE_3: list[Metric] = [
     ("auc", "AUC", "{:.3f}"), ("return_mean", "return", "{:.1f}"), ("repetition", "AR", "{:.1%}"),
+]
+FINAL_AND_BEST: list[Metric] = [
+    ("fresh_final_return_mean", "final", "{:.1f}"), ("best_return_mean", "best as selected", "{:.1f}"),
+    ("fresh_best_return_mean", "best", "{:.1f}"), ("fresh_final_repetition", "final AR", "{:.1%}"),
+    ("fresh_best_repetition", "best AR", "{:.1%}"),
 ]
 
 
@@ -213,6 +231,12 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
                   wide_table(turn, EXTRA_MEASURES), ""]
     if realtime:
         parts += ["## Table 3: real-time setting", "", wide_table(realtime, TABLE_3), ""]
+    if any("fresh_final_return_mean" in r.final for s in setups for r in s.runs):
+        parts += ["## Final and best weights, each evaluated again on fresh episodes", "",
+                  "Return and action repetition (AR) of each run's last phase: its final weights, and the "
+                  "weights of its best evaluation (the paper's protocol), both on `eval.fresh_episodes` episodes "
+                  "of a seed never used for choosing; \"best as selected\" is that best evaluation's own return, "
+                  "biased upwards by the choice.", "", wide_table(setups, FINAL_AND_BEST), ""]
     parts += ["## Learning curves", "", "![learning curves](curves.png)", ""]
     parts += _threshold_and_gallery_figures(setups, out)
     parts += ["## Runs", "", seeds_table(setups), ""]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +46,14 @@ class LoopState:
     """The training environment's random state at the checkpoint (None before its first episode)."""
     log_sizes: dict[str, int] = field(default_factory=dict)
     """Bytes each CSV log held at the checkpoint; a resumed run cuts them back to these."""
+    best: dict[str, dict[str, Any]] = field(default_factory=dict, repr=False)
+    """The learning layers' weights at this phase's best evaluation so far (tensors, checkpointed
+    beside the JSON of the rest)."""
+
+    def best_index(self) -> int:
+        """Index in `curve` of this phase's best evaluation so far (the earliest, on ties)."""
+        returns = [evaluation.return_mean for _, evaluation in self.curve]
+        return returns.index(max(returns))
 
     def start_phase(self, phase: int, learn: tuple[str, ...], eval_every: int, checkpoint_every: int) -> None:
         """Move to the start of phase `phase`, whose `learn` layers start with no decisions."""
@@ -53,17 +61,19 @@ class LoopState:
         self.next_eval, self.next_checkpoint = eval_every, checkpoint_every
         self.decisions = dict.fromkeys(learn, 0)
         self.losses = {name: [] for name in learn}
-        self.curve = []
+        self.curve, self.best = [], {}
 
     def finish_phase(self, row: dict[str, Any]) -> None:
         """Record the finished phase's results; the next phase has not started."""
         self.rows.append(row)
         self.phase, self.step, self.episode = self.phase + 1, 0, 0
-        self.decisions, self.losses, self.curve = {}, {}, []
+        self.decisions, self.losses, self.curve, self.best = {}, {}, [], {}
 
     def to_json(self) -> str:
         """The state as JSON text (floats round-trip exactly)."""
-        return json.dumps(asdict(self))
+        data = asdict(replace(self, best={}))  # the weights are saved as tensors, beside
+        del data["best"]
+        return json.dumps(data)
 
     @classmethod
     def from_json(cls, text: str) -> LoopState:
@@ -99,7 +109,7 @@ def save_run(path: Path, state: LoopState, learners: dict[str, Learner], resolve
     """Checkpoint the whole training state at an episode boundary; the previous checkpoint is kept."""
     save_checkpoint(path, "run", {
         "recipe": json.dumps(resolved_recipe, sort_keys=True), "recipe_digest": recipe_digest(resolved_recipe),
-        "max_steps": max_steps, "loop": state.to_json(), "torch_rng": torch.get_rng_state(),
+        "max_steps": max_steps, "loop": state.to_json(), "best": state.best, "torch_rng": torch.get_rng_state(),
         "learners": {name: learner.resume_state() for name, learner in learners.items()},
     }, keep_previous=True)
 
@@ -126,4 +136,6 @@ def load_run(path: Path, learners: dict[str, Learner], resolved_recipe: dict[str
     for name, learner in learners.items():
         learner.load_resume_state(saved["learners"][name])
     torch.set_rng_state(saved["torch_rng"])
-    return LoopState.from_json(saved["loop"])
+    state = LoopState.from_json(saved["loop"])
+    state.best = saved["best"]
+    return state

@@ -8,6 +8,7 @@ and stop.
 
 from __future__ import annotations
 
+import copy
 import json
 import sys
 from collections.abc import Sequence
@@ -36,6 +37,7 @@ from layered.runstate import LoopState, load_run, save_run
 from layered.stack import output_layout
 
 EPISODE_FIELDS = ["phase", "step", "return", "length"]
+FRESH_MEASURES = ("return_mean", "return_std", "repetition", "decisions", "jerk")
 
 
 class Diverged(RuntimeError):
@@ -102,11 +104,13 @@ def build_learners(recipe: Recipe) -> dict[str, Learner]:
     return learners
 
 
-def load_learners(recipe: Recipe, run_dir: Path) -> dict[str, Learner]:
-    """The learners of a finished run, restored from its checkpoints."""
+def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None) -> dict[str, Learner]:
+    """The learners of a finished run, restored from its checkpoints: each layer's `final` or `best`
+    weights of the last phase it learned in (default: the recipe's `train.select`)."""
     learners = build_learners(recipe)
+    suffix = {"final": ".pt", "best": ".best.pt"}[weights or recipe.train.select]
     for name, learner in learners.items():
-        learner.load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}.pt", name))
+        learner.load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}{suffix}", name))
     return learners
 
 
@@ -160,14 +164,44 @@ def train(
             if not state.curve:  # the phase starts now, rather than resuming from a checkpoint inside it
                 state.start_phase(p, phases[p].learn, recipe.eval.every, checkpoint_interval(recipe))
             result = run_phase(run, state, phases[p], phase_budget(recipe, phases[p], max_steps))
-            for name in phases[p].learn:
-                save_checkpoint(out / "checkpoints" / f"{name}.pt", name, learners[name].state_dict())
-            state.finish_phase(phase_row(result))
+            state.finish_phase(_finish_phase(run, state, phases[p], result))
             run.save(state)
             if run.stop.requested and p < len(phases) - 1:
                 raise Stopped(run.stop.requested, p + 1, 0, out)
     write_results(recipe, state.rows, out, info.label)
     return state.rows
+
+
+def _finish_phase(run: Run, state: LoopState, phase: Phase, result: PhaseResult) -> dict[str, Any]:
+    """Save the phase's final and best weights, evaluate both on fresh episodes, and leave the
+    learners holding the ones `train.select` hands on; the phase's results row."""
+    recipe, learners, folder = run.recipe, run.learners, run.checkpoint.parent
+    final = {name: copy.deepcopy(learners[name].state_dict()) for name in phase.learn}
+    for name in phase.learn:
+        save_checkpoint(folder / f"{name}.pt", name, final[name])
+        save_checkpoint(folder / f"{name}.best.pt", name, state.best[name])
+    best_step, best = state.curve[state.best_index()]
+    row = {**phase_row(result), "best_step": best_step, "best_return_mean": best.return_mean}
+    for label, weights in (("final", final), ("best", state.best)):
+        for name in phase.learn:
+            learners[name].load_state_dict(weights[name])
+        if recipe.eval.fresh_episodes:
+            row |= {f"fresh_{label}_{key}": value for key, value in _fresh_evaluation(run, phase).items()}
+    for name in phase.learn:
+        learners[name].load_state_dict((state.best if recipe.train.select == "best" else final)[name])
+    return row
+
+
+def _fresh_evaluation(run: Run, phase: Phase) -> dict[str, float]:
+    """The present layers evaluated on `eval.fresh_episodes` episodes of their own seed."""
+    recipe = run.recipe
+    env = make_aec_env(recipe, active=list(phase.active), evaluation=True, record=True)
+    seed = recipe.train.seed + recipe.eval.fresh_seed_offset
+    try:
+        result = evaluate(env, run.learners, recipe.eval.fresh_episodes, seed)
+    finally:
+        env.close()
+    return {key: value for key, value in result.row().items() if key in FRESH_MEASURES}
 
 
 def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
@@ -277,6 +311,8 @@ def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: LayeredEnv, ba
     recipe = run.recipe
     result = evaluate(eval_env, run.learners, recipe.eval.episodes, recipe.train.seed + recipe.eval.seed_offset)
     state.curve.append((state.step, result))
+    if state.best_index() == len(state.curve) - 1:
+        state.best = {name: copy.deepcopy(run.learners[name].state_dict()) for name in phase.learn}
     run.metrics.write({"phase": state.phase, "learn": "+".join(phase.learn), "step": state.step, **result.row(),
                        **mean_losses(state.losses)})
     for stats in state.losses.values():

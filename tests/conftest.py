@@ -32,7 +32,7 @@ def stack_recipe(periods: list[int], kinds: list[str] | str = "residual-clip", e
 def tiny() -> list[str]:
     """Overrides that make training a few hundred steps cheap."""
     return ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
-            "eval.every=100", "eval.episodes=1"]
+            "eval.every=100", "eval.episodes=1", "eval.fresh_episodes=2"]
 
 
 def assert_same_run(a: Path, b: Path) -> None:

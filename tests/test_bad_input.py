@@ -65,8 +65,8 @@ def test_bad_input_exits_2_with_one_line_and_writes_nothing(case, tmp_path, caps
 
 
 def test_a_budget_below_a_layers_warm_up_is_named_before_training(tmp_path, capsys):
-    code = main(["train", str(TLA_C), "learner.hidden=[8]", "eval.episodes=1", "--steps", "300",
-                 "--out", str(tmp_path / "run"), "--threads", "1"])
+    code = main(["train", str(TLA_C), "learner.hidden=[8]", "eval.episodes=1", "eval.fresh_episodes=1",
+                 "--steps", "300", "--out", str(tmp_path / "run"), "--threads", "1"])
     err = capsys.readouterr().err
     assert code == 0
     warning = "layered: warning: phase 0 runs 300 steps, but layer 'slow' acts at random for its first 1000 decisions"

@@ -10,7 +10,7 @@ import pytest
 
 DOCS = Path(__file__).parent.parent / "docs"
 EXAMPLES = DOCS / "examples"
-TINY = ["train.warmup=50", "eval.every=100", "eval.episodes=1"]
+TINY = ["train.warmup=50", "eval.every=100", "eval.episodes=1", "eval.fresh_episodes=2"]
 SMALL_TD3 = ["learner.hidden=[32, 32]", "learner.batch_size=32"]
 
 

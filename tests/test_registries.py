@@ -19,7 +19,8 @@ from layered.orders import ORDERS
 from layered.outputs import OutputLayout
 from layered.trainer import phases_of, train
 
-SMALL = ["learner.hidden=[16, 16]", "learner.batch_size=16", "train.warmup=20", "eval.episodes=1"]
+SMALL = ["learner.hidden=[16, 16]", "learner.batch_size=16", "train.warmup=20",
+         "eval.episodes=1", "eval.fresh_episodes=2"]
 LAYOUTS = [OutputLayout(2), OutputLayout(2, gate_dims=1), OutputLayout(2, max_repeat=3)]
 
 

@@ -14,7 +14,8 @@ from layered.summary import Run, Setup, find_runs, group
 from layered.trainer import train
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
-TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=100", "eval.episodes=1"]
+TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
+        "eval.every=100", "eval.episodes=1", "eval.fresh_episodes=2"]
 
 
 def run(label, seed, ret, auc, curve, env="Pendulum-v1", realtime=False):

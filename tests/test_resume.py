@@ -20,7 +20,8 @@ from layered.rundir import RunDirError
 from layered.trainer import Diverged, resume, train
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
-TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=150", "eval.episodes=1"]
+TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
+        "eval.every=150", "eval.episodes=1", "eval.fresh_episodes=2"]
 
 
 def test_a_run_stopped_at_an_episode_end_resumes_to_the_same_files(tmp_path, monkeypatch):

@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
-TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=100", "eval.episodes=1"]
+TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
+        "eval.every=100", "eval.episodes=1", "eval.fresh_episodes=2"]
 
 
 def sweep(*args):

@@ -16,7 +16,8 @@ from layered.trainer import EPISODE_FIELDS, Run, build_learners, metrics_fields,
 
 RECIPES = sorted((Path(__file__).parent.parent / "recipes").rglob("*.toml"))
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
-TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=100", "eval.episodes=1"]
+TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
+        "eval.every=100", "eval.episodes=1", "eval.fresh_episodes=2"]
 
 
 def check_run(out: Path, phases: int, layers: list[str]) -> dict:
@@ -126,3 +127,30 @@ def test_time_limit_truncation_bootstraps_and_termination_does_not(tmp_path):
         not_done = buffer._not_done[: len(buffer)]
         assert len(buffer) >= 400  # Pendulum: two truncated episodes stored whole
         assert bool((not_done == 0).any()) is terminates
+
+
+@pytest.mark.parametrize("select", ["final", "best"])
+def test_each_phase_keeps_final_and_best_weights_reports_both_fresh_and_hands_on_the_selected(select, tmp_path):
+    import csv
+
+    import torch
+
+    recipe = load_recipe(PENDULUM / "tla-c.toml", [*TINY, f"train.select={select}", "eval.fresh_episodes=3"])
+    train(recipe, tmp_path, max_steps=600, progress=False)
+    rows = json.loads((tmp_path / "results.json").read_text())["phases"]
+    with (tmp_path / "metrics.csv").open() as f:
+        metrics = list(csv.DictReader(f))
+    for row in rows:
+        curve = [(int(m["step"]), float(m["return_mean"])) for m in metrics if m["phase"] == str(row["phase"])]
+        best = max(curve, key=lambda point: point[1])
+        assert (row["best_step"], row["best_return_mean"]) == best  # the earliest best evaluation of the phase
+        for weights in ("final", "best"):
+            assert {f"fresh_{weights}_{k}" for k in ("return_mean", "return_std", "repetition", "decisions")} <= set(row)
+    assert "Final and best weights of each phase" in (tmp_path / "results.md").read_text()
+    slow = {name: torch.load(tmp_path / "checkpoints" / name, weights_only=True)["state"]["actor"]
+            for name in ("slow.pt", "slow.best.pt")}
+    handed_on = torch.load(tmp_path / "checkpoints" / "run.pt", weights_only=True)["state"]["learners"]["slow"]
+    chosen = slow["slow.best.pt" if select == "best" else "slow.pt"]
+    assert all(torch.equal(chosen[k], handed_on["policy"]["actor"][k]) for k in chosen)
+    if rows[0]["best_step"] != rows[0]["steps"]:  # the best was not the last evaluation: the two differ
+        assert not all(torch.equal(slow["slow.pt"][k], slow["slow.best.pt"][k]) for k in chosen)
