@@ -18,6 +18,7 @@ from layered.envs.registry import FAMILIES, EnvFamily, EnvInfo
 
 # Every suite task pays a reward in [0, 1] per control step over 1000 steps.
 SUITE_RETURN_RANGE = (0.0, 1000.0)
+SUITE_EPISODE_STEPS = 1000
 
 
 def _flatten(observation: dict[str, Any]) -> np.ndarray:
@@ -83,4 +84,4 @@ class DmControlFamily(EnvFamily):
 
     def info(self, name: str) -> EnvInfo:
         self._split(name)
-        return EnvInfo(return_range=SUITE_RETURN_RANGE)
+        return EnvInfo(return_range=SUITE_RETURN_RANGE, episode_steps=SUITE_EPISODE_STEPS)

@@ -18,9 +18,11 @@ DEFAULT_FAMILY = "gym"
 
 @dataclass(frozen=True)
 class EnvInfo:
-    """Constants of one environment: `return_range` (worst, best) normalises returns for the AUC."""
+    """Constants of one environment: `return_range` (worst, best) normalises returns for the AUC;
+    `episode_steps` is the time limit of an episode in base steps."""
 
     return_range: tuple[float, float] | None
+    episode_steps: int | None = None
 
 
 class EnvFamily(ABC):

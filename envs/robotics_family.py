@@ -57,7 +57,7 @@ class RoboticsFamily(EnvFamily):
             close = difflib.get_close_matches(name, list(gym.registry), n=3)
             hint = f"; did you mean {', '.join(close)}?" if close else ""
             raise KeyError(f"no gymnasium-robotics environment {name!r}{hint}")
-        return EnvInfo(return_range=RETURN_RANGES.get(name))
+        return EnvInfo(return_range=RETURN_RANGES.get(name), episode_steps=gym.spec(name).max_episode_steps)
 
     def timestep(self, env: gym.Env) -> float | None:
         inner = env.unwrapped

@@ -14,7 +14,7 @@ from layered.combiners import COMBINERS
 from layered.envs import env_info, env_spaces
 from layered.learners import LEARNERS, LearnerConfig
 from layered.orders import ORDERS
-from layered.stack import output_layout
+from layered.stack import output_layout, reward_per_step
 
 
 class RecipeError(ValueError):
@@ -83,6 +83,10 @@ class LayerConfig(Section):
     """The layer's action range as a multiple of the environment's (2 lets a residual cancel)."""
     action_penalty: float = Field(default=0.0, ge=0)
     """Reward penalty per step: this times the mean of |action| / the layer's action bound."""
+    action_penalty_unit: Literal["reward", "reward-per-step"] = "reward"
+    """`reward`: the penalty is in the environment's reward (the paper's); `reward-per-step`: in
+    units of its return range per step ((best - worst return) / episode steps), so one value
+    weighs the same against tasks of other reward scales."""
     defer_reward_scale: tuple[float, float] = (2.0, 0.5)
     """Gate layers: factors on rewards r <= 0 and r > 0 earned while the layers below act."""
     defer_penalty: float = Field(default=0.0, ge=0)
@@ -90,6 +94,8 @@ class LayerConfig(Section):
     deviation_penalty: float = Field(default=0.0, ge=0)
     """Reward penalty per step: this times mean |executed action - action proposed by the
     nearest deferring gate at or above this layer| / max action (j)."""
+    warmup: int | None = Field(default=None, ge=0)
+    """Decisions this layer takes uniformly at random before it learns; default `train.warmup`."""
     learner: dict[str, Any] = {}
     """Learner settings for this layer, over the recipe's `[learner]` table."""
 
@@ -122,7 +128,8 @@ class TrainConfig(Section):
     those at the phase's end (`final`) or at its best evaluation (`best`, the paper authors'
     protocol). Both are saved, and both are evaluated again on fresh episodes (eval.fresh_episodes)."""
     warmup: int = Field(default=1000, ge=0)
-    """Decisions of each learning layer taken uniformly at random before updates start."""
+    """Decisions of each learning layer taken uniformly at random before updates start (a
+    layer's own `warmup` overrides it)."""
     discount: Literal["decision", "step"] = "decision"
     """`decision`: gamma per decision of a layer; `step`: gamma**k for a decision spanning k steps."""
     seed: int = Field(default=0, ge=0)
@@ -165,6 +172,11 @@ class Recipe(Section):
 
     def layer_names(self) -> list[str]:
         return [layer.name for layer in self.layers]
+
+    def warmup(self, name: str) -> int:
+        """Random decisions of layer `name` before it learns: its own `warmup`, else `train.warmup`."""
+        own = self.layers[self.layer_names().index(name)].warmup
+        return self.train.warmup if own is None else own
 
     def learner_config(self, index: int) -> LearnerConfig:
         """The validated learner settings of layer `index`: its own table over the shared one."""
@@ -242,6 +254,10 @@ def _check_capabilities(recipe: Recipe) -> list[tuple[str, str]]:
         return [("env.id", f"{recipe.env.id} cannot be controlled by layers: {problem}")]
     action_dims = int(spaces.action_space.shape[0])  # type: ignore[index]  # a Box vector, checked above
     problems = []
+    for i, layer in enumerate(recipe.layers):
+        if layer.action_penalty_unit == "reward-per-step" and reward_per_step(recipe) is None:
+            problems.append((f"layers[{i}].action_penalty_unit", f"{recipe.env.id} has no known return range and "
+                             "episode length; give env.return_range, or the penalty in reward units"))
     for i in range(len(recipe.layers)):
         learner = LEARNERS.get(recipe.learner_config(i).kind)
         layout = output_layout(recipe, i, action_dims)

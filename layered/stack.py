@@ -16,6 +16,7 @@ from gymnasium.spaces import Box
 
 from layered.buffer import Transition
 from layered.combiners import COMBINERS, Combiner, Route
+from layered.envs import env_info
 from layered.outputs import OutputLayout
 
 if TYPE_CHECKING:  # the recipe module validates stacks with the rules below, so it imports this one
@@ -27,6 +28,25 @@ def combiner_kind(recipe: Recipe, i: int) -> str | None:
     if i == len(recipe.layers) - 1:
         return None
     return recipe.layers[i].combine or recipe.combine.kind
+
+
+def reward_per_step(recipe: Recipe) -> float | None:
+    """The environment's return range per step, (best - worst return) / episode steps, if known."""
+    info = env_info(recipe.env.id)
+    return_range = recipe.env.return_range or info.return_range
+    if return_range is None or not info.episode_steps:
+        return None
+    return (return_range[1] - return_range[0]) / info.episode_steps
+
+
+def action_penalty(recipe: Recipe, i: int) -> float:
+    """Layer i's action penalty in reward units (see `action_penalty_unit`)."""
+    layer = recipe.layers[i]
+    if layer.action_penalty_unit == "reward":
+        return layer.action_penalty
+    scale = reward_per_step(recipe)
+    assert scale is not None, "recipes are checked to know the return range per step"
+    return layer.action_penalty * scale
 
 
 def output_layout(recipe: Recipe, i: int, action_dims: int) -> OutputLayout:
@@ -136,7 +156,7 @@ class Stack:
                 layout=layout,
                 action_space=space,
                 half_range=((space.high - space.low) / 2)[: self.action_dim],
-                action_penalty=cfg.action_penalty,
+                action_penalty=action_penalty(recipe, i),
                 defer_reward_scale=cfg.defer_reward_scale,
                 defer_penalty=cfg.defer_penalty,
                 deviation_penalty=cfg.deviation_penalty,

@@ -121,10 +121,11 @@ def warmup_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
     for p, phase in enumerate(phases_of(recipe)):
         budget = phase_budget(recipe, phase, max_steps)
         for name in phase.learn:
-            if budget <= recipe.train.warmup * periods[name]:
+            warmup = recipe.warmup(name)
+            if budget <= warmup * periods[name]:
                 out.append(f"phase {p} runs {budget} steps, but layer {name!r} acts at random for its first "
-                           f"{recipe.train.warmup} decisions ({recipe.train.warmup * periods[name]} steps at period "
-                           f"{periods[name]}): it will not learn (lower train.warmup or raise the steps)")
+                           f"{warmup} decisions ({warmup * periods[name]} steps at period {periods[name]}): "
+                           "it will not learn (lower its warmup or raise the steps)")
     return out
 
 
@@ -221,7 +222,7 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
 def run_phase(run: Run, state: LoopState, phase: Phase, budget: int) -> PhaseResult:
     """Train `phase.learn` for `budget` base steps with the other present layers frozen, from `state`.
 
-    Learning layers act at random for their first `train.warmup` decisions, then with
+    Learning layers act at random for their first `warmup` decisions, then with
     exploration noise, and update once per decision after that; frozen layers act greedily.
     """
     recipe = run.recipe
@@ -249,7 +250,8 @@ def _run_episode(run: Run, state: LoopState, phase: Phase, budget: int, env: Lay
                  bar: tqdm) -> None:
     """One training episode, or its part until the phase's budget is spent: per decision of a
     layer, store its completed transition, act, step the env, update, log."""
-    learners, warmup = run.learners, run.recipe.train.warmup
+    learners, recipe = run.learners, run.recipe
+    warmups = {name: recipe.warmup(name) for name in phase.learn}
     for name in env.agent_iter():
         obs, _, terminated, truncated, info = env.last()
         learner, learns = learners[name], name in phase.learn
@@ -264,19 +266,20 @@ def _run_episode(run: Run, state: LoopState, phase: Phase, budget: int, env: Lay
         if not learns:  # act
             action = learner.act(obs, explore=False)
         else:
-            action = learner.random_action() if state.decisions[name] < warmup else learner.act(obs, explore=True)
+            warm = state.decisions[name] < warmups[name]
+            action = learner.random_action() if warm else learner.act(obs, explore=True)
         _check_finite(action, "action", name, state)
         env.step(action)  # step
         state.step += env.advanced
         bar.update(env.advanced)
         if learns:  # update
             state.decisions[name] += 1
-            if state.decisions[name] > warmup and (stats := learner.update()) is not None:
+            if state.decisions[name] > warmups[name] and (stats := learner.update()) is not None:
                 _check_finite(np.array([stats.critic_loss, stats.actor_loss or 0.0]), "loss", name, state)
                 state.losses[name].append(stats)
         if state.step >= state.next_eval:  # log
             _evaluate(run, state, phase, eval_env, bar)
-            state.next_eval += run.recipe.eval.every
+            state.next_eval += recipe.eval.every
 
 
 def _start_episode(env: LayeredEnv, state: LoopState, seed: int) -> None:

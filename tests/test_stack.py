@@ -143,6 +143,20 @@ def test_rewards_action_penalty_is_mean_abs_action_over_the_layers_bound():
     assert rewards == pytest.approx({0: -3.0, 1: -3.0 - 1.0 / 4.0})  # |a| / (2 x max action 2)
 
 
+@pytest.mark.parametrize(("env", "per_step"), [("Pendulum-v1", 1550 / 200), ("dmc:cartpole-balance", 1000 / 1000),
+                                               ("InvertedDoublePendulum-v5", 9400 / 1000)])
+def test_an_action_penalty_per_step_of_reward_range_scales_with_the_task(env, per_step):
+    recipe = stack_recipe([4, 1], env=env)
+    fast = recipe.layers[1].model_copy(update={"action_scale": 2.0, "action_penalty": 0.1,
+                                               "action_penalty_unit": "reward-per-step"})
+    space = Box(-1.0, 1.0, (1,), np.float32)
+    stack = Stack(recipe.model_copy(update={"layers": [recipe.layers[0], fast]}), OBS, space)
+    stack.hold(0, np.array([0.5]))
+    stack.hold(1, np.array([-1.0]))
+    rewards = stack.layer_rewards(0.5, stack.compose())
+    assert rewards[1] == pytest.approx(0.5 - 0.1 * per_step * 1.0 / 2.0)  # |a| / (2 x max action 1)
+
+
 @pytest.mark.parametrize(("reward", "expected"), [(-3.0, -6.0), (0.0, 0.0), (2.0, 1.0)])
 def test_rewards_of_a_deferring_gate_are_scaled(reward, expected):
     stack = make([4, 1], "gate")

@@ -35,6 +35,9 @@ class TD3Config(LearnerConfig):
     """Clip of the smoothing noise, as a fraction of the action half-range."""
     exploration_noise: float = Field(default=0.1, ge=0)
     """Std of Gaussian exploration noise, as a fraction of the action half-range."""
+    warmup_range: float = Field(default=1.0, gt=0, le=1)
+    """Random warm-up actions are uniform over this fraction of the action range, about its centre
+    (0.5 on a residual layer of twice the environment's range: uniform over the environment's)."""
     policy_delay: int = Field(default=2, gt=0)
     """Critic updates per actor and target update."""
     buffer_size: int = Field(default=1_000_000, gt=0)
@@ -118,6 +121,13 @@ class TD3(Learner):
         self._low = torch.as_tensor(low, dtype=torch.float32)
         self._high = torch.as_tensor(high, dtype=torch.float32)
         self._half = (self._high - self._low) / 2
+
+    def random_action(self) -> np.ndarray:
+        if self.config.warmup_range == 1.0:
+            return super().random_action()
+        low, high = self.action_space.low, self.action_space.high
+        centre, half = (high + low) / 2, (high - low) / 2 * self.config.warmup_range
+        return self.rng.uniform(centre - half, centre + half).astype(np.float32)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
