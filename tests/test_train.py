@@ -144,8 +144,8 @@ def test_each_phase_keeps_final_and_best_weights_reports_both_fresh_and_hands_on
         curve = [(int(m["step"]), float(m["return_mean"])) for m in metrics if m["phase"] == str(row["phase"])]
         best = max(curve, key=lambda point: point[1])
         assert (row["best_step"], row["best_return_mean"]) == best  # the earliest best evaluation of the phase
-        for weights in ("final", "best"):
-            assert {f"fresh_{weights}_{k}" for k in ("return_mean", "return_std", "repetition", "decisions")} <= set(row)
+        measures = ("return_mean", "return_std", "repetition", "decisions")
+        assert {f"fresh_{weights}_{k}" for weights in ("final", "best") for k in measures} <= set(row)
     assert "Final and best weights of each phase" in (tmp_path / "results.md").read_text()
     slow = {name: torch.load(tmp_path / "checkpoints" / name, weights_only=True)["state"]["actor"]
             for name in ("slow.pt", "slow.best.pt")}
