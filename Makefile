@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 RECIPE ?= recipes/pendulum/tla-c.toml
 OUT    ?= runs/$(basename $(notdir $(RECIPE)))-$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: run test lint
+.PHONY: run test lint bench
 
 run: $(VENV)/.installed
 	$(BIN)/layered train $(RECIPE) --out $(OUT)
@@ -15,8 +15,12 @@ test: $(VENV)/.installed
 	MUJOCO_GL=egl $(BIN)/python -m pytest -q
 
 lint: $(VENV)/.installed
-	$(BIN)/ruff check layered envs tests
+	$(BIN)/ruff check layered envs tests benchmarks
 	$(BIN)/mypy layered envs
+
+bench: $(VENV)/.installed
+	$(BIN)/python -m pip install --quiet -e ".[bench]"
+	$(BIN)/python benchmarks/td3_vs_sb3.py
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)

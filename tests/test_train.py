@@ -106,7 +106,7 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     before = sorted(p.name for p in out.iterdir())
     assert layered_cli("train", recipe, "--out", out).returncode == 2  # never overwrites a run
     assert sorted(p.name for p in out.iterdir()) == before
-    (out / "checkpoints" / "fast.pt").write_bytes(b"\0" * 10)
+    (out / "checkpoints" / "fast.best.pt").write_bytes(b"\0" * 10)  # the recipe hands on its best weights
     proc = layered_cli("eval", out)
     assert proc.returncode == 2 and "not a readable checkpoint" in proc.stderr and "Traceback" not in proc.stderr
 
