@@ -42,6 +42,9 @@ class TD3Config(LearnerConfig):
     """Critic updates per actor and target update."""
     buffer_size: int = Field(default=1_000_000, gt=0)
     """Replay capacity in transitions."""
+    precision: Literal["float32", "bfloat16"] = "float32"
+    """Precision of the updates' matrix products; `bfloat16` (autocast, weights and optimiser
+    kept in float32) is about a third faster on CPUs with AVX-512 BF16 or AMX. Acting is float32."""
 
 
 def mlp(sizes: tuple[int, ...]) -> nn.Sequential:
@@ -121,6 +124,10 @@ class TD3(Learner):
         self._low = torch.as_tensor(low, dtype=torch.float32)
         self._high = torch.as_tensor(high, dtype=torch.float32)
         self._half = (self._high - self._low) / 2
+        self._target_pairs: list[tuple[list[torch.Tensor], list[torch.Tensor]]] = [
+            (list(target.parameters()), list(net.parameters()))
+            for net, target in ((self.actor, self.actor_target), (self.critic, self.critic_target))
+        ]
 
     def random_action(self) -> np.ndarray:
         if self.config.warmup_range == 1.0:
@@ -148,28 +155,38 @@ class TD3(Learner):
         if len(self.buffer) == 0:
             return None
         b = self.buffer.sample(cfg.batch_size, self.rng)
-        with torch.no_grad():
+        with torch.no_grad(), self._precision():
             noise = torch.randn(b.action.shape, generator=self.torch_rng) * cfg.policy_noise
             noise = noise.clamp(-cfg.noise_clip, cfg.noise_clip)
             next_action = (self.actor_target(b.next_obs) + noise * self._half).clamp(self._low, self._high)
             q1_next, q2_next = self.critic_target(b.next_obs, next_action)
             target = b.reward + b.not_done * b.discount * torch.min(q1_next, q2_next)
-        q1, q2 = self.critic(b.obs, b.action)
-        critic_loss = nn.functional.mse_loss(q1, target) + nn.functional.mse_loss(q2, target)
+        with self._precision():
+            q1, q2 = self.critic(b.obs, b.action)
+            critic_loss = nn.functional.mse_loss(q1, target) + nn.functional.mse_loss(q2, target)
         self.critic_opt.zero_grad(set_to_none=True)
         critic_loss.backward()
         self.critic_opt.step()
         self.updates += 1
         actor_loss = None
         if self.updates % cfg.policy_delay == 0:
-            loss = -self.critic.q1(torch.cat([b.obs, self.actor(b.obs)], dim=-1)).mean()
-            self.actor_opt.zero_grad(set_to_none=True)
-            loss.backward()
+            self.critic.q1.requires_grad_(False)  # the actor's gradient flows through Q1; Q1's own is not needed
+            try:
+                with self._precision():
+                    loss = -self.critic.q1(torch.cat([b.obs, self.actor(b.obs)], dim=-1)).mean()
+                self.actor_opt.zero_grad(set_to_none=True)
+                loss.backward()
+            finally:
+                self.critic.q1.requires_grad_(True)
             self.actor_opt.step()
             actor_loss = loss.item()
-            for net, target_net in ((self.actor, self.actor_target), (self.critic, self.critic_target)):
-                torch._foreach_lerp_(list(target_net.parameters()), list(net.parameters()), cfg.tau)
+            for targets, sources in self._target_pairs:
+                torch._foreach_lerp_(targets, sources, cfg.tau)
         return UpdateStats(critic_loss=critic_loss.item(), actor_loss=actor_loss)
+
+    def _precision(self) -> torch.autocast:
+        """The precision of the update's matrix products (see TD3Config.precision)."""
+        return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.config.precision == "bfloat16")
 
     def state_dict(self) -> dict[str, Any]:
         return {
