@@ -8,12 +8,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib
 import numpy as np
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-from matplotlib.ticker import EngFormatter
 
 
 def _activity(row: dict[str, Any], prefix: str, fmt: str = "{:.0%}") -> str:
@@ -53,14 +48,27 @@ def results_table(rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _pyplot() -> Any:
+    """matplotlib's pyplot, drawing off-screen; imported only when a figure is drawn (it is large)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def _steps_axis(ax: Any, label: str) -> None:
     """Label an axis of environment steps, with ticks as 50k, 1M so that long runs stay legible."""
+    from matplotlib.ticker import EngFormatter
+
     ax.set_xlabel(label)
     ax.xaxis.set_major_formatter(EngFormatter(sep=""))
 
 
 def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
     """Evaluation return against base steps, one line per phase, with ±1 std over episodes."""
+    plt = _pyplot()
     with metrics_csv.open() as f:
         rows = list(csv.DictReader(f))
     fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
@@ -84,6 +92,7 @@ def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
 def plot_episode(trace: Sequence[Any], layers: Sequence[str], out_png: Path, title: str) -> None:
     """One episode: above, when each layer decided (ticks) and contributed a non-zero part of the
     action (squares); below, the executed action per dimension."""
+    plt = _pyplot()
     steps = range(len(trace))
     fig, (top, bottom) = plt.subplots(
         2, 1, figsize=(9, 2 + 0.4 * len(layers)), sharex=True, constrained_layout=True,
@@ -160,6 +169,7 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
     """Learning curves per environment, mean over seeds with a ±1 std band: over the last phase
     (what the AUC measures) and, when a setup trains in several phases, over the whole run, so
     that setups can be compared at the same number of environment steps."""
+    plt = _pyplot()
     envs = list(dict.fromkeys(s.env for s in setups))
     phased = any(len(r.total_curve) > len(r.curve) for s in setups for r in s.runs)
     views = [(False, "environment steps (last phase)"), (True, "environment steps (whole run)")][: 1 + phased]
@@ -255,6 +265,7 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
 
 def plot_threshold_sweep(rows: Sequence[dict[str, Any]], out_png: Path, title: str) -> None:
     """Return and action frequency (share of steps with a new action) against the threshold."""
+    plt = _pyplot()
     x = [float(r["threshold"]) for r in rows]
     fig, ax = plt.subplots(figsize=(6.5, 4), constrained_layout=True)
     ax.errorbar(x, [float(r["return_mean"]) for r in rows], yerr=[float(r["return_std"]) for r in rows],
@@ -273,6 +284,7 @@ def plot_threshold_sweep(rows: Sequence[dict[str, Any]], out_png: Path, title: s
 
 def save_gallery(frames: Sequence[tuple[int, Any]], out_png: Path, title: str, count: int = 8) -> None:
     """Up to `count` frames, evenly spread over those given, in one row with their step numbers."""
+    plt = _pyplot()
     chosen = [frames[round(k)] for k in np.linspace(0, len(frames) - 1, min(count, len(frames)))] if frames else []
     fig, axes = plt.subplots(1, max(1, len(chosen)), figsize=(2 * max(1, len(chosen)), 2.4), squeeze=False)
     for ax in axes[0]:
