@@ -182,6 +182,48 @@ def floor(env_id: str, threads: int) -> dict[str, float]:
             "gflops_per_s": flops / floor_s / 1e9, "share_of_floor": floor_s / update_s, "act_us": 1e6 * act_s}
 
 
+LATENCY_STACKS = {1: "pendulum/td3.toml", 2: "pendulum/tla-c.toml", 3: "research/pendulum-residual-3.toml"}
+
+
+def latency(layers: int, threads: int, steps: int = 4000) -> dict[str, float]:
+    """Time per base step of acting with a stack (no learning) through the agent view, environment
+    step included, and of the environment step alone; median and 99th percentile in microseconds."""
+    import gymnasium as gym
+    import numpy as np
+
+    import layered
+    from layered.trainer import build_learners
+
+    _set_threads(threads)
+    recipes = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "recipes")
+    recipe = layered.load_recipe(os.path.join(recipes, LATENCY_STACKS[layers]))
+    learners = build_learners(recipe)
+    env = layered.make_aec_env(recipe, seed=0, evaluation=True)
+    marks = [time.perf_counter()]
+    while len(marks) <= steps:
+        for name in env.agent_iter():
+            obs, _, terminated, truncated, _ = env.last()
+            before = env.episode_steps
+            env.step(None if terminated or truncated else learners[name].act(obs, explore=False))
+            if env.episode_steps > before:
+                marks.append(time.perf_counter())
+        env.reset()
+        marks.append(time.perf_counter())  # the reset's time is not a step's
+        marks.pop(-2)
+    per_step = np.diff(marks[:steps + 1]) * 1e6
+    plain = gym.make("Pendulum-v1")
+    plain.reset(seed=0)
+    action, env_marks = np.zeros(1, np.float32), []
+    for _ in range(steps):
+        start = time.perf_counter()
+        _, _, terminated, truncated, _ = plain.step(action)
+        env_marks.append((time.perf_counter() - start) * 1e6)
+        if terminated or truncated:
+            plain.reset()
+    return {"median_us": float(np.median(per_step)), "p99_us": float(np.percentile(per_step, 99)),
+            "env_median_us": float(np.median(env_marks))}
+
+
 def spawn(args: list[str], threads: int) -> dict[str, Any]:
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     proc = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True, env=env, check=False)
@@ -200,6 +242,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch threads of every run (default 1)")
     parser.add_argument("--child", nargs=6, help=argparse.SUPPRESS)
     parser.add_argument("--floor", nargs=2, help=argparse.SUPPRESS)
+    parser.add_argument("--latency", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         framework, env_id, steps, warmup, threads, seed = args.child
@@ -207,6 +250,9 @@ def main() -> None:
         return
     if args.floor:
         print(json.dumps(floor(args.floor[0], int(args.floor[1]))))
+        return
+    if args.latency:
+        print(json.dumps(latency(int(args.latency[0]), int(args.latency[1]))))
         return
     envs = ["Pendulum-v1"] if args.quick else args.envs.split(",")
     steps, repeats = (3000, 1) if args.quick else (args.steps, args.repeats)
@@ -239,6 +285,12 @@ def main() -> None:
         f = spawn(["--floor", env_id, str(args.threads)], args.threads)
         print(f"| {env_id} | {f['update_ms']:.2f} | {f['floor_ms']:.2f} | {f['gflop']:.3f} "
               f"| {f['gflops_per_s']:.0f} | {f['share_of_floor']:.0%} | {f['act_us']:.0f} |")
+    print("\nActing with a stack on Pendulum-v1 (no learning), per base step, environment step included:")
+    print("| layers | recipe | median µs | p99 µs | of which Pendulum's own step (median µs) |")
+    print("|---|---|---|---|---|")
+    for layers, recipe in LATENCY_STACKS.items():
+        lat = spawn(["--latency", str(layers), str(args.threads)], args.threads)
+        print(f"| {layers} | {recipe} | {lat['median_us']:.0f} | {lat['p99_us']:.0f} | {lat['env_median_us']:.0f} |")
 
 
 if __name__ == "__main__":

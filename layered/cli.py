@@ -172,7 +172,7 @@ def _eval(args: argparse.Namespace) -> int:
     out_dir.mkdir(exist_ok=True)
     if args.threshold_sweep:
         _threshold_sweep(recipe, learners, active, args.threshold_sweep, episodes, seed, out_dir)
-    else:
+    if args.threshold is not None or args.plot or not args.threshold_sweep:
         _evaluate_once(args, recipe, learners, active, episodes, seed, out_dir)
     if args.gallery is not None:
         from layered.evaluate import frames_where_layer_acts

@@ -115,7 +115,8 @@ class TrainConfig(Section):
     """How the stack is trained."""
 
     order: str = "slow-to-fast"
-    """Training order: `slow-to-fast`, `fast-to-slow`, or `explicit` (with `phases`)."""
+    """Training order: `slow-to-fast`, `fast-to-slow`, `joint` (every layer learns at once, in one
+    phase), or `explicit` (with `phases`); or any registered one."""
     phases: list[PhaseConfig] | None = None
     """Explicit phases; giving them selects the `explicit` order."""
     steps_per_phase: int = Field(default=30_000, gt=0)

@@ -140,6 +140,8 @@ def _cell(setup: Any, key: str, fmt: str) -> str:
     mean, std = setup.stat(key)
     if mean != mean:  # NaN: no value for this setup
         return "n/a"
+    if len(setup.runs) == 1:  # no spread over seeds to show
+        return f"{fmt.format(mean)} (1 seed)"
     return f"{fmt.format(mean)} ± {fmt.format(std)}"
 
 
@@ -158,7 +160,7 @@ def wide_table(setups: Sequence[Any], metrics: Sequence[Metric]) -> str:
 
 def seeds_table(setups: Sequence[Any]) -> str:
     """Which runs make up each setup: the traceability of every number in the tables."""
-    lines = ["| environment | setup | seeds | run directories |", "|---|---|---|---|"]
+    lines = ["| environment | setup | seed ids | run directories |", "|---|---|---|---|"]
     for s in setups:
         dirs = ", ".join(str(r.path) for r in s.runs)
         lines.append(f"| {s.env} | {s.label} | {', '.join(str(r.seed) for r in s.runs)} | {dirs} |")

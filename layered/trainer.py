@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 import tomli_w
 import torch
-from tqdm import tqdm
 
 from layered.agents import LayeredEnv, make_aec_env
 from layered.checkpoint import load_checkpoint, save_checkpoint, write_atomically
@@ -30,6 +29,7 @@ from layered.learners import LEARNERS, Learner, UpdateStats
 from layered.logs import CsvLog
 from layered.metrics import Evaluation, normalised_auc
 from layered.orders import ORDERS, Phase
+from layered.progress import Progress
 from layered.recipe import Recipe, load_recipe, resolved
 from layered.report import plot_curves, results_table
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, read_run_info
@@ -228,8 +228,7 @@ def run_phase(run: Run, state: LoopState, phase: Phase, budget: int) -> PhaseRes
     recipe = run.recipe
     env = make_aec_env(recipe, active=list(phase.active))
     eval_env = make_aec_env(recipe, active=list(phase.active), evaluation=True, record=True)
-    bar = tqdm(total=budget, initial=state.step, desc=f"phase {state.phase}: {'+'.join(phase.learn)}", unit="step",
-               disable=not run.progress, dynamic_ncols=True, mininterval=1.0)
+    bar = Progress(f"phase {state.phase}: {'+'.join(phase.learn)}", budget, state.step, run.progress)
     try:
         if not state.curve:
             _evaluate(run, state, phase, eval_env, bar)
@@ -247,7 +246,7 @@ def run_phase(run: Run, state: LoopState, phase: Phase, budget: int) -> PhaseRes
 
 
 def _run_episode(run: Run, state: LoopState, phase: Phase, budget: int, env: LayeredEnv, eval_env: LayeredEnv,
-                 bar: tqdm) -> None:
+                 bar: Progress) -> None:
     """One training episode, or its part until the phase's budget is spent: per decision of a
     layer, store its completed transition, act, step the env, update, log."""
     learners, recipe = run.learners, run.recipe
@@ -271,7 +270,7 @@ def _run_episode(run: Run, state: LoopState, phase: Phase, budget: int, env: Lay
         _check_finite(action, "action", name, state)
         env.step(action)  # step
         state.step += env.advanced
-        bar.update(env.advanced)
+        bar.advance(env.advanced)
         if learns:  # update
             state.decisions[name] += 1
             if state.decisions[name] > warmups[name] and (stats := learner.update()) is not None:
@@ -309,7 +308,7 @@ def _end_episode(run: Run, env: LayeredEnv, state: LoopState) -> None:
         raise Stopped(run.stop.requested, state.phase, state.step, run.checkpoint.parent.parent)
 
 
-def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: LayeredEnv, bar: tqdm) -> None:
+def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: LayeredEnv, bar: Progress) -> None:
     """Evaluate the present layers now and log the row, with each learning layer's mean losses since the last."""
     recipe = run.recipe
     result = evaluate(eval_env, run.learners, recipe.eval.episodes, recipe.train.seed + recipe.eval.seed_offset)
@@ -320,7 +319,7 @@ def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: LayeredEnv, ba
                        **mean_losses(state.losses)})
     for stats in state.losses.values():
         stats.clear()
-    bar.set_postfix_str(f"eval return {result.return_mean:.1f}")
+    bar.evaluated(state.step, result)
 
 
 def _check_finite(values: np.ndarray, what: str, layer: str, state: LoopState) -> None:

@@ -74,7 +74,7 @@ def test_report_command_on_real_runs(tmp_path):
     returns = [finals["td3-s0"]["return_mean"], finals["td3-s1"]["return_mean"]]
     mean, std = sum(returns) / 2, abs(returns[0] - returns[1]) / 2
     assert f"{mean:.1f} ± {std:.1f}" in proc.stdout
-    assert f"{finals['tla-c-s0']['repetition']:.1%} ± 0.0%" in proc.stdout
+    assert f"{finals['tla-c-s0']['repetition']:.1%} (1 seed)" in proc.stdout
     assert (tmp_path / "report" / "curves.png").stat().st_size > 0
     assert len(find_runs([tmp_path / "runs"])) == 3
     assert "pendulum/td3,td3,0 1," in (tmp_path / "report" / "summary.csv").read_text()
@@ -98,7 +98,7 @@ def test_real_time_runs_get_the_layout_of_table_3(tmp_path):
     ])
     text = write_report(setups, tmp_path)
     table3 = text.split("## Table 3")[1].split("##")[0]
-    assert "| Hopper-v5 | 0.450 ± 0.050 | 0.600 ± 0.000 | 3050.0 ± 50.0 | 3400.0 ± 0.0 |" in table3
+    assert "| Hopper-v5 | 0.450 ± 0.050 | 0.600 (1 seed) | 3050.0 ± 50.0 | 3400.0 (1 seed) |" in table3
     assert "Pendulum-v1" not in table3 and "Pendulum-v1" in text.split("## Table 1")[1]
     assert (tmp_path / "curves.png").stat().st_size > 0
 
