@@ -78,7 +78,9 @@ def read_run_info(run_dir: Path) -> RunInfo:
     """How the run in `run_dir` was started."""
     path = run_dir / "run.json"
     if not (run_dir / "recipe.toml").is_file() or not path.is_file():
-        raise RunDirError(f"{run_dir} is not a run directory (no recipe.toml and run.json)")
+        empty = not run_dir.is_dir() or not any(p.name in RUN_FILES for p in run_dir.iterdir())
+        hint = "; a run stopped before it wrote anything starts again with `layered train`" if empty else ""
+        raise RunDirError(f"{run_dir} is not a run directory (no recipe.toml and run.json){hint}")
     try:
         data = json.loads(path.read_text())
         return RunInfo(str(data["label"]), data["max_steps"], tuple(data["plugins"]))

@@ -143,11 +143,11 @@ def train(
     results.json. Raises Stopped when SIGINT or SIGTERM stopped it, after a final checkpoint.
     """
     out = Path(out_dir)
-    learners = build_learners(recipe)  # before anything is written: a stack that cannot be built leaves nothing
     for warning in warmup_warnings(recipe, max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
     info = RunInfo(label or out.name, max_steps, tuple(plugins))
-    prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)
+    prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # first, so that a run killed early resumes
+    learners = build_learners(recipe)
     run = Run(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
               CsvLog(out / "episodes.csv", EPISODE_FIELDS), out / "checkpoints" / "run.pt", max_steps, progress,
               StopRequest())
