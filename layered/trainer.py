@@ -177,32 +177,35 @@ def _finish_phase(run: Run, state: LoopState, phase: Phase, result: PhaseResult)
     """Save the phase's final and best weights, evaluate both on fresh episodes, and leave the
     learners holding the ones `train.select` hands on; the phase's results row."""
     recipe, learners, folder = run.recipe, run.learners, run.checkpoint.parent
-    final = {name: copy.deepcopy(learners[name].state_dict()) for name in phase.learn}
+    keep_final = recipe.train.select == "final"
+    final = {name: copy.deepcopy(learners[name].state_dict()) for name in phase.learn} if keep_final else {}
     for name in phase.learn:
-        save_checkpoint(folder / f"{name}.pt", name, final[name])
+        save_checkpoint(folder / f"{name}.pt", name, learners[name].state_dict())
         save_checkpoint(folder / f"{name}.best.pt", name, state.best[name])
     best_step, best = state.curve[state.best_index()]
     row = {**phase_row(result), "best_step": best_step, "best_return_mean": best.return_mean}
-    for label, weights in (("final", final), ("best", state.best)):
-        for name in phase.learn:
-            learners[name].load_state_dict(weights[name])
-        if recipe.eval.fresh_episodes:
-            row |= {f"fresh_{label}_{key}": value for key, value in _fresh_evaluation(run, phase).items()}
+    row |= _fresh_evaluation(run, phase, "final")  # the learners hold the final weights
     for name in phase.learn:
-        learners[name].load_state_dict((state.best if recipe.train.select == "best" else final)[name])
+        learners[name].load_state_dict(state.best[name])
+    row |= _fresh_evaluation(run, phase, "best")
+    for name in final:
+        learners[name].load_state_dict(final[name])
     return row
 
 
-def _fresh_evaluation(run: Run, phase: Phase) -> dict[str, float]:
-    """The present layers evaluated on `eval.fresh_episodes` episodes of their own seed."""
+def _fresh_evaluation(run: Run, phase: Phase, label: str) -> dict[str, float]:
+    """The present layers evaluated on `eval.fresh_episodes` episodes of their own seed, as
+    `fresh_<label>_<measure>` (nothing when eval.fresh_episodes is 0)."""
     recipe = run.recipe
+    if not recipe.eval.fresh_episodes:
+        return {}
     env = make_aec_env(recipe, active=list(phase.active), evaluation=True, record=True)
     seed = recipe.train.seed + recipe.eval.fresh_seed_offset
     try:
         result = evaluate(env, run.learners, recipe.eval.fresh_episodes, seed)
     finally:
         env.close()
-    return {key: value for key, value in result.row().items() if key in FRESH_MEASURES}
+    return {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
 
 
 def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
