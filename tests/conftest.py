@@ -57,6 +57,16 @@ def assert_same_state(x, y, where):
         assert x == y, where
 
 
+def train_until_stopped(monkeypatch, recipe, out: Path, episodes: int, **kwargs) -> None:
+    """Train until the loop is asked to stop at the `episodes`-th episode end, as SIGINT would ask."""
+    from layered.interrupt import Stopped
+
+    stop_at_episode_end(monkeypatch, episodes)
+    with pytest.raises(Stopped):
+        trainer.train(recipe, out, **kwargs)
+    monkeypatch.undo()
+
+
 def stop_at_episode_end(monkeypatch, k: int) -> None:
     """Ask the loop to stop at the k-th episode end, as SIGINT would."""
     original, calls = trainer._end_episode, []

@@ -6,14 +6,13 @@ import io
 import numpy as np
 import pytest
 import torch
-from conftest import assert_same_run, stack_recipe, stop_at_episode_end
+from conftest import assert_same_run, stack_recipe, train_until_stopped
 from gymnasium.spaces import Box
 
 from layered import load_recipe, make_aec_env
 from layered.buffer import Transition
 from layered.combiners import COMBINERS
 from layered.envs import FAMILIES
-from layered.interrupt import Stopped
 from layered.learners import LEARNERS
 from layered.orders import ORDERS
 from layered.outputs import OutputLayout
@@ -82,10 +81,7 @@ def test_learner_resume_gives_an_identical_future(name):
 def stopped_and_resumed_equals_whole(recipe, tmp_path, monkeypatch, steps: int, stop_after: int) -> None:
     """Stopped at the `stop_after`-th episode end and resumed, a run equals one that never stopped."""
     train(recipe, tmp_path / "whole", max_steps=steps, progress=False, label="x")
-    stop_at_episode_end(monkeypatch, stop_after)
-    with pytest.raises(Stopped):
-        train(recipe, tmp_path / "run", max_steps=steps, progress=False, label="x")
-    monkeypatch.undo()
+    train_until_stopped(monkeypatch, recipe, tmp_path / "run", stop_after, max_steps=steps, progress=False, label="x")
     train(recipe, tmp_path / "run", max_steps=steps, progress=False, label="x", resume=True)
     assert_same_run(tmp_path / "whole", tmp_path / "run")
 

@@ -11,7 +11,7 @@ from functools import partial
 from pathlib import Path
 
 import pytest
-from conftest import assert_same_run, stop_at_episode_end
+from conftest import assert_same_run, stop_at_episode_end, train_until_stopped
 
 from layered import load_recipe
 from layered.checkpoint import CheckpointError, previous
@@ -50,10 +50,7 @@ def test_metrics_keep_every_layers_columns_in_every_phase(tmp_path):
 
 def test_resume_refuses_a_changed_recipe_or_budget_naming_the_difference(tmp_path, monkeypatch):
     recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
-    stop_at_episode_end(monkeypatch, 2)
-    with pytest.raises(Stopped):
-        train(recipe, tmp_path, max_steps=700, progress=False)
-    monkeypatch.undo()
+    train_until_stopped(monkeypatch, recipe, tmp_path, 2, max_steps=700, progress=False)
     with pytest.raises(RunDirError, match="started with --steps 700, not --steps 900"):
         resume(tmp_path, max_steps=900)
     changed = load_recipe(PENDULUM / "tla-c.toml", [*TINY, "train.warmup=60"])
@@ -69,10 +66,7 @@ def test_a_damaged_checkpoint_falls_back_to_the_previous_one(tmp_path, monkeypat
     recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
     train(recipe, tmp_path / "whole", max_steps=700, progress=False, label="x")
     out = tmp_path / "run"
-    stop_at_episode_end(monkeypatch, 3)
-    with pytest.raises(Stopped):
-        train(recipe, out, max_steps=700, progress=False, label="x")
-    monkeypatch.undo()
+    train_until_stopped(monkeypatch, recipe, out, 3, max_steps=700, progress=False, label="x")
     newest = out / "checkpoints" / "run.pt"
     assert previous(newest).exists()
     newest.write_bytes(newest.read_bytes()[:1000])  # truncated
@@ -85,10 +79,7 @@ def test_a_damaged_checkpoint_falls_back_to_the_previous_one(tmp_path, monkeypat
 
 def test_no_usable_checkpoint_is_refused_and_nothing_changes(tmp_path, monkeypatch):
     recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
-    stop_at_episode_end(monkeypatch, 3)
-    with pytest.raises(Stopped):
-        train(recipe, tmp_path, max_steps=700, progress=False)
-    monkeypatch.undo()
+    train_until_stopped(monkeypatch, recipe, tmp_path, 3, max_steps=700, progress=False)
     for path in (tmp_path / "checkpoints" / "run.pt", previous(tmp_path / "checkpoints" / "run.pt")):
         path.write_bytes(b"\0" * 64)
     before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}

@@ -59,19 +59,16 @@ def test_ray_backend_runs_the_same_jobs_and_gathers_the_same_run_directories(tmp
 
 def test_ray_backend_resumes_a_stopped_run_from_its_checkpoint(tmp_path, monkeypatch):
     pytest.importorskip("ray", reason="the ray backend is the optional extra layered[ray]")
-    from conftest import stop_at_episode_end
+    from conftest import train_until_stopped
 
-    from layered import load_recipe, train
-    from layered.interrupt import Stopped
+    from layered import load_recipe
     from layered.sweep import plan
 
     args = (PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 450)
     assert sweep(*args, "--jobs", 1, "--out", tmp_path / "local").returncode == 0
     [job] = plan([PENDULUM / "td3.toml"], 1, tmp_path / "ray", TINY, 450)
-    stop_at_episode_end(monkeypatch, 1)
-    with pytest.raises(Stopped):
-        train(load_recipe(job.recipe), job.out, max_steps=450, progress=False, label=job.label)
-    monkeypatch.undo()
+    train_until_stopped(monkeypatch, load_recipe(job.recipe), job.out, 1, max_steps=450, progress=False,
+                        label=job.label)
     remote = sweep(*args, "--backend", "ray", "--out", tmp_path / "ray")
     assert remote.returncode == 0, remote.stderr
     log = (job.out / "train.log").read_text()  # the Ray task's own progress lines, one per evaluation
