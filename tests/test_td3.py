@@ -132,3 +132,13 @@ def test_gate_learner_proposes_an_action_and_a_gate_and_learns_which_pays():
         learner.update()
     assert learner.act(obs, explore=False)[1] == 1.0
     assert learner.act_macs() == (3 * 32 + 32 * 1) + (4 * 32 + 32 * 2)
+
+
+def test_target_networks_keep_no_autograd_history():
+    """The soft target update must not record autograd history: it would grow with every update."""
+    learner = filled(0)
+    for _ in range(6):
+        learner.update()
+    for net in (learner.actor_target, learner.critic_target):
+        for p in net.parameters():
+            assert not p.requires_grad and p.grad_fn is None and p.is_leaf

@@ -187,8 +187,9 @@ class TD3(Learner):
                 self.critic.q1.requires_grad_(True)
             self.actor_opt.step()
             actor_loss = loss.item()
-            for targets, sources in self._target_pairs:
-                torch._foreach_lerp_(targets, sources, cfg.tau)
+            with torch.no_grad():  # else each update's lerp joins the targets' autograd history, which then grows
+                for targets, sources in self._target_pairs:
+                    torch._foreach_lerp_(targets, sources, cfg.tau)
         return UpdateStats(critic_loss=critic_loss.item(), actor_loss=actor_loss)
 
     def _precision(self) -> torch.autocast:
