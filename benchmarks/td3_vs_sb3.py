@@ -61,7 +61,7 @@ class UpdateClock:
         return (self.calls - 1) / (self.last - self.first)
 
 
-def run_layered(env_id: str, steps: int, warmup: int, seed: int) -> UpdateClock:
+def run_layered(env_id: str, steps: int, warmup: int, seed: int, precision: str = "float32") -> UpdateClock:
     import tempfile
 
     import layered
@@ -72,7 +72,7 @@ def run_layered(env_id: str, steps: int, warmup: int, seed: int) -> UpdateClock:
     recipe = layered.load_recipe({
         "env": {"id": env_id},
         "layers": [{"name": "td3", "period": 1}],
-        "learner": {"kind": "td3", "hidden": list(HIDDEN), "batch_size": BATCH},
+        "learner": {"kind": "td3", "hidden": list(HIDDEN), "batch_size": BATCH, "precision": precision},
         "train": {"steps_per_phase": steps, "warmup": warmup, "seed": seed},
         "eval": {"every": 10 * steps, "episodes": 1, "fresh_episodes": 0},
     })
@@ -101,11 +101,14 @@ def run_sb3(env_id: str, steps: int, warmup: int, seed: int) -> UpdateClock:
     return clock
 
 
-def child(framework: str, env_id: str, steps: int, warmup: int, threads: int, seed: int) -> None:
+def child(framework: str, env_id: str, steps: int, warmup: int, threads: int, seed: int, precision: str) -> None:
     """One run; prints its measurements as one JSON line."""
     start = time.perf_counter()
     _set_threads(threads)
-    clock = (run_layered if framework == "layered" else run_sb3)(env_id, steps, warmup, seed)
+    if framework == "layered":
+        clock = run_layered(env_id, steps, warmup, seed, precision)
+    else:
+        clock = run_sb3(env_id, steps, warmup, seed)
     print(json.dumps({
         "framework": framework, "env": env_id, "steps_per_second": clock.steps_per_second(),
         "updates": clock.calls, "wall_seconds": time.perf_counter() - start,
@@ -240,13 +243,15 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=1000, help="random steps before updates (default 1000)")
     parser.add_argument("--repeats", type=int, default=3, help="runs per framework and environment (default 3)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads of every run (default 1)")
-    parser.add_argument("--child", nargs=6, help=argparse.SUPPRESS)
+    parser.add_argument("--precision", choices=["float32", "bfloat16"], default="float32",
+                        help="layered's learner.precision (SB3 runs in float32; default float32)")
+    parser.add_argument("--child", nargs=7, help=argparse.SUPPRESS)
     parser.add_argument("--floor", nargs=2, help=argparse.SUPPRESS)
     parser.add_argument("--latency", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        framework, env_id, steps, warmup, threads, seed = args.child
-        child(framework, env_id, int(steps), int(warmup), int(threads), int(seed))
+        framework, env_id, steps, warmup, threads, seed, precision = args.child
+        child(framework, env_id, int(steps), int(warmup), int(threads), int(seed), precision)
         return
     if args.floor:
         print(json.dumps(floor(args.floor[0], int(args.floor[1]))))
@@ -256,15 +261,15 @@ def main() -> None:
         return
     envs = ["Pendulum-v1"] if args.quick else args.envs.split(",")
     steps, repeats = (3000, 1) if args.quick else (args.steps, args.repeats)
-    print(f"TD3, layered against Stable-Baselines3: {steps} steps per run ({args.warmup} random), "
-          f"{repeats} run(s) each, {args.threads} torch thread(s), {os.cpu_count()} cores")
+    print(f"TD3, layered ({args.precision} updates) against Stable-Baselines3: {steps} steps per run "
+          f"({args.warmup} random), {repeats} run(s) each, {args.threads} torch thread(s), {os.cpu_count()} cores")
     results: list[dict[str, Any]] = []
     for env_id in envs:
         for r in range(repeats):
             order = ["layered", "sb3"] if r % 2 == 0 else ["sb3", "layered"]
             for framework in order:
-                row = spawn(["--child", framework, env_id, str(steps), str(args.warmup), str(args.threads), str(r)],
-                            args.threads)
+                row = spawn(["--child", framework, env_id, str(steps), str(args.warmup), str(args.threads), str(r),
+                             args.precision], args.threads)
                 results.append(row)
                 print(f"  {env_id:<14} {framework:<8} {row['steps_per_second']:7.1f} steps/s  "
                       f"wall {row['wall_seconds']:6.1f} s  peak {row['peak_mib']:6.0f} MiB", flush=True)
