@@ -11,7 +11,8 @@ import pickle
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any
+from collections.abc import Callable
+from typing import Any, BinaryIO
 
 import torch
 
@@ -27,28 +28,14 @@ def previous(path: Path) -> Path:
     return path.with_name(f"{path.stem}.prev{path.suffix}")
 
 
-def write_atomically(path: Path, text: str) -> None:
-    """Write a text file so that it is either wholly the old or wholly the new content."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def save_checkpoint(path: Path, layer: str, state: dict[str, Any], keep_previous: bool = False) -> None:
-    """Write `state` (of `layer`, or `run`) to `path`; a crash mid-write leaves the old file intact.
-
-    With `keep_previous` the file it replaces is kept as `previous(path)`.
-    """
+def _write_atomically(path: Path, write: Callable[[BinaryIO], object], keep_previous: bool = False) -> None:
+    """Write `path` through a temporary file flushed to disk and renamed into place, so that the file
+    is wholly the old or wholly the new content; with `keep_previous` the old one becomes `previous(path)`."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     try:
         with os.fdopen(fd, "wb") as f:
-            torch.save({"format_version": FORMAT_VERSION, "layer": layer, "state": state}, f)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         if keep_previous and path.exists():
@@ -57,6 +44,20 @@ def save_checkpoint(path: Path, layer: str, state: dict[str, Any], keep_previous
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Write a text file so that it is either wholly the old or wholly the new content."""
+    _write_atomically(path, lambda f: f.write(text.encode("utf-8")))
+
+
+def save_checkpoint(path: Path, layer: str, state: dict[str, Any], keep_previous: bool = False) -> None:
+    """Write `state` (of `layer`, or `run`) to `path`; a crash mid-write leaves the old file intact.
+
+    With `keep_previous` the file it replaces is kept as `previous(path)`.
+    """
+    data = {"format_version": FORMAT_VERSION, "layer": layer, "state": state}
+    _write_atomically(path, lambda f: torch.save(data, f), keep_previous)
 
 
 def load_checkpoint(path: Path, layer: str) -> dict[str, Any]:

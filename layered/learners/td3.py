@@ -131,7 +131,7 @@ class TD3(Learner):
         ]
 
     def random_action(self) -> np.ndarray:
-        if self.config.warmup_range == 1.0:
+        if self.config.warmup_range == 1.0:  # the whole range: the base draw, bit for bit as before the setting
             return super().random_action()
         low, high = self.action_space.low, self.action_space.high
         centre, half = (high + low) / 2, (high - low) / 2 * self.config.warmup_range
