@@ -13,6 +13,7 @@ from typing import Any, NoReturn
 import torch
 
 from layered.checkpoint import CheckpointError
+from layered.export import ExportError
 from layered.interrupt import Stopped
 from layered.plugins import PluginError, load_plugins
 from layered.recipe import RecipeError, load_recipe
@@ -89,6 +90,21 @@ def _parser() -> argparse.ArgumentParser:
                     help="evaluate at each threshold (default 0, 0.1, ..., 1) and plot return and action frequency")
     ev.add_argument("--gallery", nargs="?", const="", metavar="LAYER",
                     help="render the states where LAYER (default: the fastest) acts, as gallery-LAYER.png")
+    ex = sub.add_parser(
+        "export", help="write a trained stack as files that run without the training code",
+        epilog="then, with torch (or onnxruntime) alone: from layered_runtime import load_stack; "
+        "stack = load_stack(DIR); stack.reset(); action = stack.step(obs)",
+    )
+    ex.add_argument("run_dir", type=Path, help="run directory of a trained run")
+    ex.add_argument("--format", choices=["torchscript", "onnx"], default="torchscript",
+                    help="policy files for torch alone (default) or for onnxruntime (extra layered[onnx])")
+    ex.add_argument("--out", type=Path, help="export directory (default RUN_DIR/export-FORMAT)")
+    ex.add_argument("--weights", choices=["final", "best"],
+                    help="each phase's final or best weights (default: the recipe's train.select)")
+    ex.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
+    ex.add_argument("--episodes", type=_positive, default=3,
+                    help="episodes on which the export is checked against the library and timed (default 3)")
+    _plugin_option(ex, "besides those the run was trained with")
     sw = sub.add_parser(
         "sweep", help="train every recipe with several seeds, in parallel processes",
         usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--out DIR] [--steps N]",
@@ -227,6 +243,42 @@ def _threshold_sweep(recipe: Any, learners: Any, active: list[str], thresholds: 
     print(f"written to {out_dir / 'threshold-sweep.csv'} and threshold-sweep.png")
 
 
+def _export(args: argparse.Namespace) -> int:
+    from layered.export import export_stack
+    from layered.latency import compare
+    from layered.trainer import load_learners, phases_of, run_plugins
+
+    if args.threshold is not None and args.threshold < 0:
+        return _fail("--threshold must be >= 0")
+    if args.format == "onnx" and not _installed("onnxruntime", "onnxscript"):
+        return _fail("--format onnx needs the extra layered[onnx]: pip install 'layered[onnx]'")
+    load_plugins(run_plugins(args.run_dir) + args.plugin)
+    recipe = load_recipe(args.run_dir / "recipe.toml")
+    active = list(phases_of(recipe)[-1].active)
+    learners = load_learners(recipe, args.run_dir, args.weights)
+    out = args.out or args.run_dir / f"export-{args.format}"
+    torch.set_num_threads(1)  # decisions are timed on one core, as on a robot's controller
+    export_stack(recipe, learners, active, out, args.format, args.threshold)
+    print(f"exported {', '.join(active)} ({args.format}) to {out}")
+    result = compare(recipe, learners, active, out, args.episodes, recipe.train.seed + recipe.eval.seed_offset,
+                     args.threshold)
+    (out / "check.json").write_text(json.dumps(result.row(), indent=2) + "\n")
+    same = "the same executed actions" if result.max_difference <= 1e-5 else "DIFFERENT executed actions"
+    print(f"checked against the library on {result.episodes} episodes ({result.steps} steps): {same} "
+          f"(largest difference {result.max_difference:.2g})")
+    print("| time per base step, one thread | median µs | p99 µs |\n|---|---|---|")
+    for name, latency in (("library (agent view)", result.library), (f"exported ({args.format})", result.exported)):
+        print(f"| {name} | {latency.median_us:.1f} | {latency.p99_us:.1f} |")
+    print(f"written to {out / 'check.json'}; how to run it: docs/deploy.md")
+    return 0 if result.max_difference <= 1e-5 else 1
+
+
+def _installed(*modules: str) -> bool:
+    import importlib.util
+
+    return all(importlib.util.find_spec(m) is not None for m in modules)
+
+
 def _report(args: argparse.Namespace) -> int:
     from layered.report import write_report
     from layered.summary import find_runs, group
@@ -261,7 +313,7 @@ def _sweep(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
-COMMANDS = {"train": _train, "resume": _resume, "eval": _eval, "sweep": _sweep, "report": _report}
+COMMANDS = {"train": _train, "resume": _resume, "eval": _eval, "export": _export, "sweep": _sweep, "report": _report}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -283,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
         for line in e.lines:
             print(f"layered: error: {line}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (CheckpointError, PluginError, RunDirError) as e:
+    except (CheckpointError, PluginError, RunDirError, ExportError) as e:
         return _fail(str(e))
     except Stopped as e:
         print(f"layered: {e}", file=sys.stderr)

@@ -62,6 +62,17 @@ def test_learner_save_load_gives_identical_actions(name):
     assert np.array_equal(a.act(obs, False), b.act(obs, False))
 
 
+@pytest.mark.parametrize("name", LEARNERS.names())
+def test_learner_policy_module_acts_as_act(name):
+    """What `layered export` writes is what the learner does at evaluation."""
+    learner = make_learner(name, 1)
+    behaviour(learner)
+    policy = learner.policy()
+    for x in np.linspace(-1, 1, 9):
+        obs = np.array([x, -x, 0.5 * x], np.float32)
+        assert np.array_equal(policy(torch.from_numpy(obs)).detach().numpy(), learner.act(obs, False))
+
+
 def through_a_file(state):
     """`state` as a checkpoint gives it back: written and read again, sharing no tensor."""
     buffer = io.BytesIO()

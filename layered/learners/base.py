@@ -9,6 +9,7 @@ from typing import Any, ClassVar
 import numpy as np
 from gymnasium.spaces import Box
 from pydantic import BaseModel, ConfigDict, Field
+from torch import nn
 
 from layered.buffer import Transition
 from layered.outputs import OutputLayout
@@ -64,6 +65,11 @@ class Learner(ABC):
     @abstractmethod
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         """The action for `obs`; with `explore`, perturbed for exploration. Never learns."""
+
+    def policy(self) -> nn.Module:
+        """The deterministic policy as a torch module of its own: one float32 observation vector in,
+        what `act(obs, explore=False)` returns out. `layered export` writes it."""
+        raise NotImplementedError(f"the {self.config.kind!r} learner has no exportable policy (Learner.policy)")
 
     @abstractmethod
     def act_macs(self) -> int:

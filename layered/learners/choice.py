@@ -3,6 +3,7 @@ targets bootstrap from the TD3 critic. TempoRL's skip length and a learned gate 
 
 from __future__ import annotations
 
+import copy
 from abc import abstractmethod
 from typing import Any
 
@@ -66,6 +67,23 @@ class ChoiceQ:
         self.opt.load_state_dict(state["opt"])
 
 
+class ActionAndChoice(nn.Module):
+    """TD3's action for one observation followed by the output value of the best-valued choice."""
+
+    values: torch.Tensor
+
+    def __init__(self, actor: nn.Module, choice: nn.Module, values: list[float]) -> None:
+        super().__init__()
+        self.actor = actor
+        self.choice = choice
+        self.register_buffer("values", torch.tensor(values, dtype=torch.float32))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        action = self.actor(obs)
+        best = self.choice(torch.cat([obs, action], dim=-1)).argmax(dim=-1, keepdim=True)
+        return torch.cat([action, self.values[best]], dim=-1)
+
+
 class TD3WithChoice(Learner):
     """A learner whose output is a TD3 action followed by one discrete choice, encoded as a number."""
 
@@ -95,6 +113,10 @@ class TD3WithChoice(Learner):
         action = self.td3.act(obs, explore)
         index = self.choice.choose(obs, action, self.epsilon() if explore else 0.0, self.rng)
         return np.append(action, self.encode(index)).astype(np.float32)
+
+    def policy(self) -> nn.Module:
+        values = [self.encode(k) for k in range(self.choice.n)]
+        return ActionAndChoice(self.td3.policy(), copy.deepcopy(self.choice.net).eval().requires_grad_(False), values)
 
     def act_macs(self) -> int:
         return self.td3.act_macs() + self.choice.macs()

@@ -151,6 +151,9 @@ class TD3(Learner):
             action = np.clip(action + noise, self.action_space.low, self.action_space.high)
         return action.astype(np.float32)
 
+    def policy(self) -> nn.Module:
+        return copy.deepcopy(self.actor).eval().requires_grad_(False)
+
     def act_macs(self) -> int:
         return linear_macs(self.actor)
 
