@@ -53,8 +53,8 @@ def test_onnx_export_executes_the_library_actions(tmp_path):
 def test_exported_directory_runs_with_torch_alone(tmp_path):
     """The runtime imports nothing of layered: a fresh interpreter without it on the path runs it."""
     *_, out = exported("recipes/pendulum/tla-c.toml", [], tmp_path)
-    script = ("import sys; sys.path.insert(0, '.'); sys.modules['layered'] = None; from layered_runtime import load_stack; "
-              "import numpy as np; s = load_stack('.'); s.reset(); "
+    script = ("import sys; sys.path.insert(0, '.'); sys.modules['layered'] = None; "
+              "from layered_runtime import load_stack; import numpy as np; s = load_stack('.'); s.reset(); "
               "print([round(float(s.step(np.ones(3, np.float32))[0]), 6) for _ in range(6)], s.decided)")
     done = subprocess.run([sys.executable, "-I", "-c", script], cwd=out, capture_output=True, text=True, check=True)
     assert done.stdout.strip().endswith("['fast']")  # step 5: period 4 slow layer idle, the fast one decides
