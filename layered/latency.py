@@ -89,10 +89,11 @@ def _exported_episode(stack: ExportedStack, env: gym.Env, seed: int) -> tuple[li
             return actions, seconds
 
 
-def _warm_up(stack: ExportedStack, obs_space: gym.Space) -> None:
+def _warm_up(stack: ExportedStack, env: gym.Env, seed: int) -> None:
+    obs, _ = env.reset(seed=seed)
     stack.reset()
     for _ in range(WARMUP_CALLS):
-        stack.step(np.zeros(obs_space.shape, np.float32))
+        stack.step(obs)
 
 
 def compare(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], exported: Path, episodes: int,
@@ -104,7 +105,7 @@ def compare(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], 
     library.base = timer
     stack = load_stack(exported)
     env = make_env(recipe.env.id)
-    _warm_up(stack, env.observation_space)
+    _warm_up(stack, env, seed)
     library_seconds: list[float] = []
     exported_seconds: list[float] = []
     difference, steps = 0.0, 0
