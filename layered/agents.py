@@ -8,7 +8,7 @@ is the reference semantics the trainer drives directly.
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import gymnasium as gym
 import numpy as np
@@ -21,7 +21,14 @@ from layered.recipe import Recipe
 from layered.stack import Stack
 
 
-MAX_FRAMES = 64
+class Watcher(Protocol):
+    """Something that looks at evaluation episodes as they are played: videos, galleries."""
+
+    def wants(self, step: int) -> bool:
+        """Whether to render the state before base step `step` of the episode."""
+
+    def __call__(self, frame: np.ndarray, record: StepRecord) -> None:
+        """The state rendered before a base step, and what was executed from it."""
 
 
 class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
@@ -43,8 +50,7 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self._action_spaces = {n: stack.layers[i].action_space for n, i in self._index.items()}
         self.record = record
         self.trace: list[StepRecord] = []
-        self.capture: str | None = None  # a layer: render the state whenever its contribution is non-zero
-        self.frames: list[tuple[int, np.ndarray]] = []  # (step, rgb frame), at most MAX_FRAMES an episode
+        self.watcher: Watcher | None = None
         self._obs: np.ndarray = np.zeros(base.observation_space.shape or (0,), np.float32)
         self._decided: list[str] = []
         self.episode_return = 0.0
@@ -70,7 +76,6 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self.infos: dict[str, dict[str, Any]] = {a: {} for a in self.agents}
         self._decided = []
         self.trace = []
-        self.frames = []
         self.episode_return = 0.0
         self.episode_steps = 0
         self.advanced = 0
@@ -123,19 +128,23 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
     def _base_step(self) -> bool:
         """Execute the composed action for one base step; True when the episode ended."""
         composition = self.stack.compose()
-        if self.capture is not None and len(self.frames) < MAX_FRAMES:
-            own = composition.contributions.get(self._index[self.capture])
-            if own is not None and np.any(own != 0):
-                self.frames.append((self.episode_steps, np.asarray(self.base.render())))
+        watched = self.watcher is not None and self.watcher.wants(self.episode_steps)
+        frame = np.asarray(self.base.render()) if watched else None
+        obs = self._obs
         self._obs, reward, terminated, truncated, _ = self.base.step(composition.action)
         rewards = self.stack.layer_rewards(float(reward), composition)
         for i, r in rewards.items():
             self.rewards[self.stack.layers[i].name] += r
         self.stack.tick()
         self.stack.record(rewards, self._obs, ended=terminated or truncated)
-        if self.record:
-            sizes = {self.stack.layers[i].name: float(np.mean(np.abs(c))) for i, c in composition.contributions.items()}
-            self.trace.append(StepRecord(composition.action, float(reward), tuple(self._decided), sizes))
+        if self.record or frame is not None:
+            # copies: the stack reuses its held arrays, and an env may reuse its observation's
+            parts = {self.stack.layers[i].name: c.copy() for i, c in composition.contributions.items()}
+            step = StepRecord(composition.action, float(reward), tuple(self._decided), parts, np.array(obs))
+            if self.record:
+                self.trace.append(step)
+            if frame is not None and self.watcher is not None:
+                self.watcher(frame, step)
         self.episode_return += float(reward)
         self.episode_steps += 1
         self._decided = []

@@ -88,6 +88,8 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
     ev.add_argument("--threshold-sweep", type=_thresholds, nargs="?", const=DEFAULT_SWEEP, metavar="X,Y,...",
                     help="evaluate at each threshold (default 0, 0.1, ..., 1) and plot return and action frequency")
+    ev.add_argument("--video", action="store_true",
+                    help="write an MP4 per episode (default 1 episode) with a strip of who decided and who acted")
     ev.add_argument("--gallery", nargs="?", const="", metavar="LAYER",
                     help="render the states where LAYER (default: the fastest) acts, as gallery-LAYER.png")
     ex = sub.add_parser(
@@ -188,16 +190,22 @@ def _eval(args: argparse.Namespace) -> int:
     out_dir.mkdir(exist_ok=True)
     if args.threshold_sweep:
         _threshold_sweep(recipe, learners, active, args.threshold_sweep, episodes, seed, out_dir)
-    if args.threshold is not None or args.plot or not args.threshold_sweep:
+    if args.threshold is not None or args.plot or not (args.threshold_sweep or args.video):
         _evaluate_once(args, recipe, learners, active, episodes, seed, out_dir)
+    if args.video:
+        from layered.video import write_videos
+
+        for path, ret in write_videos(recipe, learners, active, out_dir, args.episodes or 1, seed, args.threshold):
+            print(f"video: {path} (return {ret:.1f})")
     if args.gallery is not None:
-        from layered.evaluate import frames_where_layer_acts
+        from layered.evaluate import states_where_layer_acts
         from layered.report import save_gallery
 
-        frames = frames_where_layer_acts(recipe, learners, active, args.gallery, seed)
+        acting, shots = states_where_layer_acts(recipe, learners, active, args.gallery, seed)
         png = out_dir / f"gallery-{args.gallery}.png"
-        save_gallery(frames, png, f"{recipe.env.id}: states where layer {args.gallery!r} acts")
-        print(f"gallery of {len(frames)} states where {args.gallery!r} acted (up to 8 shown): {png}")
+        save_gallery(shots, args.gallery, png, f"{recipe.env.id}: states where layer {args.gallery!r} acts")
+        print(f"{args.gallery!r} acted at {len(acting)} steps of the episode; the {len(shots)} most different "
+              f"states: {png}")
     return 0
 
 

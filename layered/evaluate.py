@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -10,7 +11,7 @@ from tqdm import tqdm
 
 from layered.agents import LayeredEnv, make_aec_env
 from layered.learners import Learner
-from layered.metrics import EpisodeMeasures, Evaluation, measure_episode, summarise
+from layered.metrics import EpisodeMeasures, Evaluation, StepRecord, measure_episode, summarise
 from layered.recipe import Recipe
 
 
@@ -46,12 +47,51 @@ def threshold_sweep(
     return rows
 
 
-def frames_where_layer_acts(
-    recipe: Recipe, learners: Mapping[str, Learner], active: list[str], layer: str, seed: int
-) -> list[tuple[int, np.ndarray]]:
-    """Rendered states of one evaluation episode at which `layer` changed the action."""
+def distinct_states(points: Sequence[np.ndarray], count: int) -> list[int]:
+    """Indices of up to `count` points that differ most: farthest-point sampling in standardised
+    coordinates, from the first point; returned in order of index."""
+    if not points:
+        return []
+    x = np.asarray(points, np.float64)
+    x = (x - x.mean(axis=0)) / np.where(x.std(axis=0) > 0, x.std(axis=0), 1.0)
+    chosen = [0]
+    nearest = np.linalg.norm(x - x[0], axis=1)
+    while len(chosen) < min(count, len(x)) and nearest.max() > 0:
+        chosen.append(int(nearest.argmax()))
+        nearest = np.minimum(nearest, np.linalg.norm(x - x[chosen[-1]], axis=1))
+    return sorted(chosen)
+
+
+Shot = tuple[int, np.ndarray, StepRecord]  # a base step, the state rendered before it, what was executed
+
+
+@dataclass
+class _Shots:
+    """A watcher that keeps the frames of chosen base steps with what was executed there."""
+
+    steps: set[int]
+    taken: list[Shot] = field(default_factory=list)
+    step: int = 0  # the step whose frame comes next
+
+    def wants(self, step: int) -> bool:
+        self.step = step
+        return step in self.steps
+
+    def __call__(self, frame: np.ndarray, record: StepRecord) -> None:
+        self.taken.append((self.step, frame, record))
+
+
+def states_where_layer_acts(
+    recipe: Recipe, learners: Mapping[str, Learner], active: list[str], layer: str, seed: int, count: int = 8
+) -> tuple[list[int], list[Shot]]:
+    """The steps of one evaluation episode at which `layer` changed the action, and rendered frames
+    of up to `count` of them whose observations differ most. The episode is played twice (it is
+    deterministic given the seed): once to find the states, once to render them."""
     env = make_aec_env(recipe, active=active, evaluation=True, record=True, render_mode="rgb_array")
-    env.capture = layer
+    run_episode(env, learners, seed)
+    acting = [t for t, step in enumerate(env.trace) if layer in step.acted]
+    shots = _Shots({acting[k] for k in distinct_states([env.trace[t].obs for t in acting], count)})
+    env.watcher = shots
     run_episode(env, learners, seed)
     env.close()
-    return env.frames
+    return acting, shots.taken

@@ -11,17 +11,24 @@ import numpy as np
 
 @dataclass(frozen=True)
 class StepRecord:
-    """One base step as executed: the action, which layers decided, and what each contributed."""
+    """One base step as executed: the action, which layers decided, what each contributed, and the
+    observation it was executed from."""
 
     action: np.ndarray
     reward: float
     decided: tuple[str, ...]  # layers whose network was evaluated at this step
-    contributions: dict[str, float]  # per layer the walk reached: mean |contribution| over dimensions
+    contributions: dict[str, np.ndarray]  # per layer the walk reached: its part of the action
+    obs: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+
+    def size(self, name: str) -> float:
+        """Mean |contribution| of layer `name` over action dimensions (0 where the walk did not reach it)."""
+        part = self.contributions.get(name)
+        return 0.0 if part is None else float(np.mean(np.abs(part)))
 
     @property
     def acted(self) -> tuple[str, ...]:
         """Layers whose contribution to the action was non-zero."""
-        return tuple(name for name, size in self.contributions.items() if size > 0)
+        return tuple(name for name in self.contributions if self.size(name) > 0)
 
 
 def action_repetition(actions: Sequence[np.ndarray]) -> float:
@@ -76,8 +83,8 @@ def measure_episode(trace: Sequence[StepRecord], macs: dict[str, int]) -> Episod
         decisions=sum(1 for s in trace if s.decided),
         compute=sum(macs[n] for s in trace for n in s.decided),
         decided={n: sum(n in s.decided for s in trace) for n in macs},
-        acted={n: sum(s.contributions.get(n, 0.0) > 0 for s in trace) for n in macs},
-        contribution={n: float(sum(s.contributions.get(n, 0.0) for s in trace)) for n in macs},
+        acted={n: sum(s.size(n) > 0 for s in trace) for n in macs},
+        contribution={n: float(sum(s.size(n) for s in trace)) for n in macs},
     )
 
 

@@ -284,16 +284,21 @@ def plot_threshold_sweep(rows: Sequence[dict[str, Any]], out_png: Path, title: s
     plt.close(fig)
 
 
-def save_gallery(frames: Sequence[tuple[int, Any]], out_png: Path, title: str, count: int = 8) -> None:
-    """Up to `count` frames, evenly spread over those given, in one row with their step numbers."""
+def _signed(values: Any) -> str:
+    return " ".join(f"{float(v):+.2f}" for v in values[:3]) + (" ..." if len(values) > 3 else "")
+
+
+def save_gallery(shots: Sequence[tuple[int, Any, Any]], layer: str, out_png: Path, title: str) -> None:
+    """The rendered states in one row, each titled with its step, the layer's part of the action
+    and the executed action."""
     plt = _pyplot()
-    chosen = [frames[round(k)] for k in np.linspace(0, len(frames) - 1, min(count, len(frames)))] if frames else []
-    fig, axes = plt.subplots(1, max(1, len(chosen)), figsize=(2 * max(1, len(chosen)), 2.4), squeeze=False)
+    fig, axes = plt.subplots(1, max(1, len(shots)), figsize=(2.2 * max(1, len(shots)), 2.9), squeeze=False)
     for ax in axes[0]:
         ax.axis("off")
-    for ax, (step, frame) in zip(axes[0], chosen, strict=False):
+    for ax, (step, frame, record) in zip(axes[0], shots, strict=False):
         ax.imshow(frame)
-        ax.set_title(f"step {step}", fontsize="small")
-    fig.suptitle(title if chosen else f"{title}: the layer never acted", fontsize="medium")
+        ax.set_title(f"step {step}\n{layer}: {_signed(record.contributions[layer])}\naction: {_signed(record.action)}",
+                     fontsize="x-small")
+    fig.suptitle(title if shots else f"{title}: the layer never acted", fontsize="medium")
     fig.savefig(out_png, dpi=100, bbox_inches="tight")
     plt.close(fig)

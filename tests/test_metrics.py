@@ -33,7 +33,7 @@ def test_jerk_is_the_mean_absolute_change_over_steps_and_dimensions():
 
 def steps(actions, rewards, decided, acted):
     """Steps where each layer in `acted` contributed 0.5 and the others, reached, contributed 0."""
-    contributions = [{n: 0.5 for n in a} for a in acted]
+    contributions = [{n: np.array([0.5]) for n in a} for a in acted]
     return [StepRecord(*row) for row in zip(actions, rewards, decided, contributions, strict=True)]
 
 

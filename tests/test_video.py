@@ -1,0 +1,33 @@
+"""`layered eval --video`: an MP4 per episode, with the layer strip under every frame, for each
+environment family."""
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from layered import load_recipe
+from layered.trainer import build_learners, phases_of
+from layered.video import COLOURS, write_videos
+
+RECIPES = {  # recipe, episodes (dm_control renders in software here, 30 ms a frame over 1000 steps)
+    "classic control": ("recipes/pendulum/tla-c.toml", 2),
+    "MuJoCo": ("recipes/inverted-pendulum/tla-c.toml", 2),
+    "dm_control": ("recipes/dmc-cartpole-balance/tla-c.toml", 1),
+}
+
+
+@pytest.mark.parametrize("family", list(RECIPES))
+def test_video_per_episode_with_the_layer_strip(family, tmp_path):
+    path, episodes = RECIPES[family]
+    recipe = load_recipe(path, ["learner.hidden=[16, 16]"])
+    learners = build_learners(recipe)
+    active = list(phases_of(recipe)[-1].active)
+    written = write_videos(recipe, learners, active, tmp_path, episodes=episodes, seed=3, threshold=0.0)
+    assert [p.name for p, _ in written] == [f"episode-{k}.mp4" for k in range(episodes)]
+    reader = imageio.get_reader(written[0][0])
+    frames = [f for f in reader]
+    reader.close()
+    assert len(frames) > 1 and frames[0].shape[1] >= 480
+    strip = frames[-1][-60:].reshape(-1, 3).astype(int)  # the strip's layer rows and action row
+    fast = np.array(COLOURS[1])  # the second layer's colour: its label, and its blocks where it acted
+    assert np.any(np.abs(strip - fast).sum(axis=1) < 40)
