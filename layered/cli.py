@@ -61,7 +61,8 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     tr = sub.add_parser(
         "train", help="train a recipe and write a run directory",
-        usage="layered train RECIPE [key=value ...] [--out DIR] [--seed S] [--steps N] [--threads T] [--force]",
+        usage="layered train RECIPE [key=value ...] [--out DIR] [--seed S] [--steps N] [--threads T] [--force] "
+        "[--tensorboard]",
         epilog="key=value pairs override recipe values, e.g. train.warmup=500 layers.fast.period=2",
     )
     tr.add_argument("recipe", help="recipe TOML file")
@@ -70,6 +71,8 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--steps", type=_positive, help="cap every training phase at N environment steps")
     tr.add_argument("--threads", type=_positive, help="torch threads (use 1 per process when running several)")
     tr.add_argument("--force", action="store_true", help="start over in an --out that holds a stopped or finished run")
+    tr.add_argument("--tensorboard", action="store_true",
+                    help="also write TensorBoard event files (as log.tensorboard=true; extra layered[tensorboard])")
     _plugin_option(tr)
     rs = sub.add_parser("resume", help="continue a stopped run from its last checkpoint",
                         epilog="the run continues with the recipe and --steps it was started with")
@@ -137,6 +140,7 @@ def _train(args: argparse.Namespace) -> int:
     from layered.trainer import train
 
     overrides = list(args.overrides) + ([f"train.seed={args.seed}"] if args.seed is not None else [])
+    overrides += ["log.tensorboard=true"] if args.tensorboard else []
     plugins = load_plugins(args.plugin)
     recipe = load_recipe(args.recipe, overrides)
     out = args.out or Path("runs") / f"{Path(args.recipe).stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"

@@ -160,6 +160,14 @@ class EvalConfig(Section):
     """The fresh episodes' environment is seeded with train.seed plus this offset."""
 
 
+class LogConfig(Section):
+    """What a run writes besides its CSV logs and results."""
+
+    tensorboard: bool = False
+    """Also write TensorBoard event files (run directory's `tensorboard/`, one run per phase): every
+    row of metrics.csv as scalars. Needs the extra `layered[tensorboard]`."""
+
+
 class Recipe(Section):
     """A whole experiment: environment, layer stack, combiners, learners, training and evaluation."""
 
@@ -170,6 +178,7 @@ class Recipe(Section):
     """Learner settings shared by every layer (`kind` plus that learner's keys)."""
     train: TrainConfig = TrainConfig()
     eval: EvalConfig = EvalConfig()
+    log: LogConfig = LogConfig()
 
     def layer_names(self) -> list[str]:
         return [layer.name for layer in self.layers]

@@ -26,11 +26,13 @@ from layered.envs import env_info
 from layered.evaluate import evaluate
 from layered.interrupt import StopRequest, Stopped
 from layered.learners import LEARNERS, Learner, UpdateStats
+from layered.events import EventLog
+from layered.events import available as events_available
 from layered.logs import CsvLog
 from layered.metrics import Evaluation, normalised_auc
 from layered.orders import ORDERS, Phase
 from layered.progress import Progress
-from layered.recipe import Recipe, load_recipe, resolved
+from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.report import plot_curves, results_table
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, read_run_info
 from layered.runstate import LoopState, load_run, save_run
@@ -67,6 +69,7 @@ class Run:
     max_steps: int | None
     progress: bool
     stop: StopRequest
+    events: EventLog | None = None  # TensorBoard scalars, when the recipe asks for them
 
     def save(self, state: LoopState) -> None:
         """Checkpoint the whole training state, with how much of each log it covers."""
@@ -145,13 +148,18 @@ def train(
     out = Path(out_dir)
     for warning in warmup_warnings(recipe, max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
+    if recipe.log.tensorboard and not events_available():
+        raise RecipeError("recipe", [("log.tensorboard", "needs the extra layered[tensorboard]: "
+                                      "pip install 'layered[tensorboard]'")])
     info = RunInfo(label or out.name, max_steps, tuple(plugins))
     prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # first, so that a run killed early resumes
     learners = build_learners(recipe)
+    checkpoint = out / "checkpoints" / "run.pt"
+    state = load_run(checkpoint, learners, resolved(recipe), max_steps)
+    resumed_at = None if state is None else (state.phase, state.step)
     run = Run(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
-              CsvLog(out / "episodes.csv", EPISODE_FIELDS), out / "checkpoints" / "run.pt", max_steps, progress,
-              StopRequest())
-    state = load_run(run.checkpoint, learners, resolved(recipe), max_steps)
+              CsvLog(out / "episodes.csv", EPISODE_FIELDS), checkpoint, max_steps, progress, StopRequest(),
+              EventLog(out / "tensorboard", resumed_at) if recipe.log.tensorboard else None)
     if state is None:
         state = LoopState()
         run.metrics.start()
@@ -159,18 +167,28 @@ def train(
     else:
         run.metrics.truncate(state.log_sizes["metrics"])
         run.episodes.truncate(state.log_sizes["episodes"])
+    try:
+        _train_phases(run, state, out)
+    finally:
+        if run.events is not None:
+            run.events.close()
+    write_results(recipe, state.rows, out, info.label)
+    return state.rows
+
+
+def _train_phases(run: Run, state: LoopState, out: Path) -> None:
+    """Train the phases from where `state` stands, checkpointing at the end of each."""
+    recipe = run.recipe
     with run.stop.installed():
         phases = phases_of(recipe)
         for p in range(len(state.rows), len(phases)):
             if not state.curve:  # the phase starts now, rather than resuming from a checkpoint inside it
                 state.start_phase(p, phases[p].learn, recipe.eval.every, checkpoint_interval(recipe))
-            result = run_phase(run, state, phases[p], phase_budget(recipe, phases[p], max_steps))
+            result = run_phase(run, state, phases[p], phase_budget(recipe, phases[p], run.max_steps))
             state.finish_phase(_finish_phase(run, state, phases[p], result))
             run.save(state)
             if run.stop.requested and p < len(phases) - 1:
                 raise Stopped(run.stop.requested, p + 1, 0, out)
-    write_results(recipe, state.rows, out, info.label)
-    return state.rows
 
 
 def _finish_phase(run: Run, state: LoopState, phase: Phase, result: PhaseResult) -> dict[str, Any]:
@@ -318,8 +336,11 @@ def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: LayeredEnv, ba
     state.curve.append((state.step, result))
     if state.best_index() == len(state.curve) - 1:
         state.best = {name: copy.deepcopy(run.learners[name].state_dict()) for name in phase.learn}
-    run.metrics.write({"phase": state.phase, "learn": "+".join(phase.learn), "step": state.step, **result.row(),
-                       **mean_losses(state.losses)})
+    row = {"phase": state.phase, "learn": "+".join(phase.learn), "step": state.step, **result.row(),
+           **mean_losses(state.losses)}
+    run.metrics.write(row)
+    if run.events is not None:
+        run.events.write(row)
     for stats in state.losses.values():
         stats.clear()
     bar.evaluated(state.step, result)
