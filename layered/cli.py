@@ -18,12 +18,12 @@ from layered.interrupt import Stopped
 from layered.plugins import PluginError, load_plugins
 from layered.recipe import RecipeError, load_recipe
 from layered.report import plot_episode, results_table
+from layered.run_evals import DEFAULT_SWEEP
 from layered.rundir import RunDirError
 
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 1
 EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
-DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]
 
 
 def _thresholds(text: str) -> list[float]:
@@ -127,6 +127,10 @@ def _parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
     rep.add_argument("runs", type=Path, nargs="+", help="run directories, or folders that hold them")
     rep.add_argument("--out", type=Path, help="report directory (default runs/report-<time>)")
+    rep.add_argument("--no-extra-evals", action="store_true",
+                     help="draw only from what the runs hold; by default each run's missing threshold sweep (Fig. 2) "
+                     "and gallery are evaluated once and kept in its eval/ folder")
+    rep.add_argument("--threads", type=_positive, help="torch threads for those evaluations")
     return parser
 
 
@@ -174,80 +178,60 @@ def _finished(out: Path) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from layered.trainer import load_learners, phases_of, run_plugins
+    from layered.run_evals import gallery, open_run, threshold_sweep
 
     sweep = [args.threshold] if args.threshold is not None else []
     sweep += args.threshold_sweep or []
     if any(t < 0 for t in sweep):
         return _fail("thresholds must be >= 0")
-    load_plugins(run_plugins(args.run_dir) + args.plugin)  # refuses a directory that holds no run
-    recipe = load_recipe(args.run_dir / "recipe.toml")
-    active = list(phases_of(recipe)[-1].active)
+    run = open_run(args.run_dir, args.weights, args.plugin)
     if args.gallery == "":
-        args.gallery = active[-1]
-    if args.gallery is not None and args.gallery not in active:
-        return _fail(f"--gallery: no layer {args.gallery!r} in this stack; layers: {', '.join(active)}")
-    learners = load_learners(recipe, args.run_dir, args.weights)
-    episodes = args.episodes or recipe.eval.episodes
-    seed = recipe.train.seed + recipe.eval.seed_offset
-    out_dir = args.run_dir / "eval"
-    out_dir.mkdir(exist_ok=True)
+        args.gallery = run.active[-1]
+    if args.gallery is not None and args.gallery not in run.active:
+        return _fail(f"--gallery: no layer {args.gallery!r} in this stack; layers: {', '.join(run.active)}")
+    episodes = args.episodes or run.recipe.eval.episodes
     if args.threshold_sweep:
-        _threshold_sweep(recipe, learners, active, args.threshold_sweep, episodes, seed, out_dir)
+        _print_sweep(threshold_sweep(run, args.threshold_sweep, episodes), run)
     if args.threshold is not None or args.plot or not (args.threshold_sweep or args.video):
-        _evaluate_once(args, recipe, learners, active, episodes, seed, out_dir)
+        _evaluate_once(args, run, episodes)
     if args.video:
         from layered.video import write_videos
 
-        for path, ret in write_videos(recipe, learners, active, out_dir, args.episodes or 1, seed, args.threshold):
+        for path, ret in write_videos(run.recipe, run.learners, run.active, run.eval_dir, args.episodes or 1, run.seed,
+                                      args.threshold):
             print(f"video: {path} (return {ret:.1f})")
     if args.gallery is not None:
-        from layered.evaluate import states_where_layer_acts
-        from layered.report import save_gallery
-
-        acting, shots = states_where_layer_acts(recipe, learners, active, args.gallery, seed)
-        png = out_dir / f"gallery-{args.gallery}.png"
-        save_gallery(shots, args.gallery, png, f"{recipe.env.id}: states where layer {args.gallery!r} acts")
-        print(f"{args.gallery!r} acted at {len(acting)} steps of the episode; the {len(shots)} most different "
-              f"states: {png}")
+        png, acted, shown = gallery(run, args.gallery)
+        print(f"{args.gallery!r} acted at {acted} steps of the episode; the {shown} most different states: {png}")
     return 0
 
 
-def _evaluate_once(args: argparse.Namespace, recipe: Any, learners: Any, active: list[str], episodes: int,
-                   seed: int, out_dir: Path) -> None:
+def _evaluate_once(args: argparse.Namespace, run: Any, episodes: int) -> None:
     from layered.agents import make_aec_env
     from layered.evaluate import evaluate
 
-    env = make_aec_env(recipe, active=active, evaluation=True, threshold=args.threshold, record=True)
-    result = evaluate(env, learners, episodes, seed, progress=True)
+    env = make_aec_env(run.recipe, active=run.active, evaluation=True, threshold=args.threshold, record=True)
+    result = evaluate(env, run.learners, episodes, run.seed, progress=True)
     threshold = args.threshold if args.threshold is not None else "recipe"
-    row = {"phase": "eval", "learn": [], "active": active, "auc": None, "threshold": threshold,
+    row = {"phase": "eval", "learn": [], "active": run.active, "auc": None, "threshold": threshold,
            "episodes": episodes, **result.row()}
     weights = f"-{args.weights}" if args.weights else ""
-    out = out_dir / f"threshold-{threshold}-episodes-{episodes}{weights}.json"
+    out = run.eval_dir / f"threshold-{threshold}-episodes-{episodes}{weights}.json"
     out.write_text(json.dumps(row, indent=2))
     print(results_table([row]))
     print(f"written to {out}")
     if args.plot:
         png = out.with_suffix(".png")
-        plot_episode(env.trace, env.possible_agents, png, f"{recipe.env.id}: last evaluation episode")
+        plot_episode(env.trace, env.possible_agents, png, f"{run.recipe.env.id}: last evaluation episode")
         print(f"episode plot: {png}")
     env.close()
 
 
-def _threshold_sweep(recipe: Any, learners: Any, active: list[str], thresholds: list[float], episodes: int,
-                     seed: int, out_dir: Path) -> None:
-    import csv
-
-    from layered.evaluate import threshold_sweep
+def _print_sweep(rows: list[dict[str, Any]], run: Any) -> None:
     from layered.report import plot_threshold_sweep
 
-    rows = threshold_sweep(recipe, learners, active, thresholds, episodes, seed)
-    with (out_dir / "threshold-sweep.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    plot_threshold_sweep(rows, out_dir / "threshold-sweep.png", f"{recipe.env.id}: threshold sweep")
+    out_dir = run.eval_dir
+    plot_threshold_sweep(rows, out_dir / "threshold-sweep.png", f"{run.recipe.env.id}: threshold sweep")
     print("| threshold | return | action repetition | decisions |\n|---|---|---|---|")
     for r in rows:
         print(f"| {r['threshold']:g} | {r['return_mean']:.1f} ± {r['return_std']:.1f} | {r['repetition']:.1%} "
@@ -296,9 +280,18 @@ def _report(args: argparse.Namespace) -> int:
     from layered.summary import find_runs, group
 
     try:
-        setups = group(find_runs(args.runs))
+        runs = find_runs(args.runs)
     except FileNotFoundError as e:
         return _fail(str(e))
+    if not args.no_extra_evals:
+        from layered.run_evals import missing_figure_evals, run_missing_figure_evals
+
+        todo = [r.path for r in runs if missing_figure_evals(r.path)]
+        for k, path in enumerate(todo):
+            print(f"[{k + 1}/{len(todo)}] {path}: evaluating {' and '.join(missing_figure_evals(path))}",
+                  file=sys.stderr)
+            run_missing_figure_evals(path)
+    setups = group(runs)
     out = args.out or Path("runs") / f"report-{time.strftime('%Y%m%d-%H%M%S')}"
     print(write_report(setups, out))
     print(f"report directory: {out} (report.md, summary.csv, curves.png)")

@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import Any
 
 EVAL_TAGS = {
-    "return_mean": "eval/return", "return_std": "eval/return_std", "repetition": "eval/action_repetition",
+    "return_mean": "eval/return", "return_std": "eval/return_std", "return_min": "eval/return_min",
+    "return_max": "eval/return_max", "repetition": "eval/action_repetition",
     "jerk": "eval/jerk", "decisions": "eval/decisions", "compute": "eval/compute_macs",
     "episode_steps": "eval/episode_steps",
 }

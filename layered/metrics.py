@@ -102,13 +102,16 @@ class Evaluation:
     decided: dict[str, float]
     acted: dict[str, float]
     contribution: dict[str, float]  # mean |contribution| per step, averaged over action dimensions
+    return_min: float = float("nan")  # the lowest and highest episode return
+    return_max: float = float("nan")
 
     PER_LAYER: ClassVar[tuple[str, ...]] = ("decided", "acted", "contribution")
 
     def row(self) -> dict[str, float]:
         """Flat columns for a CSV row: the stack's measures, then per-layer ones as `<measure>_<layer>`."""
         out = {
-            "return_mean": self.return_mean, "return_std": self.return_std, "repetition": self.repetition,
+            "return_mean": self.return_mean, "return_std": self.return_std, "return_min": self.return_min,
+            "return_max": self.return_max, "repetition": self.repetition,
             "jerk": self.jerk, "decisions": self.decisions, "compute": self.compute, "episode_steps": self.steps,
         }
         for measure in self.PER_LAYER:
@@ -118,7 +121,8 @@ class Evaluation:
     @classmethod
     def columns(cls, layers: Sequence[str]) -> list[str]:
         """Every column `row` can give for a stack of `layers`, in its order."""
-        stack = ["return_mean", "return_std", "repetition", "jerk", "decisions", "compute", "episode_steps"]
+        stack = ["return_mean", "return_std", "return_min", "return_max", "repetition", "jerk", "decisions", "compute",
+                 "episode_steps"]
         return stack + [f"{measure}_{n}" for measure in cls.PER_LAYER for n in layers]
 
 
@@ -138,4 +142,6 @@ def summarise(episodes: Sequence[EpisodeMeasures]) -> Evaluation:
         decided={n: sum(e.decided[n] for e in episodes) / total for n in names},
         acted={n: sum(e.acted[n] for e in episodes) / total for n in names},
         contribution={n: sum(e.contribution[n] for e in episodes) / total for n in names},
+        return_min=float(returns.min()),
+        return_max=float(returns.max()),
     )

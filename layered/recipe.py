@@ -193,6 +193,10 @@ class Recipe(Section):
         table = {"kind": "td3", **self.learner, **self.layers[index].learner}
         return LEARNERS.get(table["kind"]).Config.model_validate(table)
 
+    def return_range(self) -> tuple[float, float] | None:
+        """The (worst, best) return of an episode: the recipe's `env.return_range`, else the registry's."""
+        return self.env.return_range or env_info(self.env.id).return_range
+
     def threshold(self, index: int) -> float:
         """The evaluation threshold (fraction of max action) applied below layer `index`."""
         own = self.layers[index].eval_threshold

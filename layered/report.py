@@ -66,8 +66,21 @@ def _steps_axis(ax: Any, label: str) -> None:
     ax.xaxis.set_major_formatter(EngFormatter(sep=""))
 
 
+def band(mean: Any, std: Any, lowest: Any = None, highest: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """mean ± std, clipped to the lowest and highest of the values it summarises where known: a band
+    never claims returns beyond those seen (such as above a task's maximum)."""
+    mean = np.asarray(mean, np.float64)
+    low, high = mean - std, mean + std
+    if lowest is not None:
+        low = np.maximum(low, np.asarray(lowest, np.float64))
+    if highest is not None:
+        high = np.minimum(high, np.asarray(highest, np.float64))
+    return low, high
+
+
 def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
-    """Evaluation return against base steps, one line per phase, with ±1 std over episodes."""
+    """Evaluation return against base steps, one line per phase, with ±1 std over episodes (clipped to
+    the lowest and highest episode return)."""
     plt = _pyplot()
     with metrics_csv.open() as f:
         rows = list(csv.DictReader(f))
@@ -78,8 +91,7 @@ def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
         y = [float(r["return_mean"]) for r in sel]
         s = [float(r["return_std"]) for r in sel]
         line, = ax.plot(x, y, marker="o", ms=3, label=f"phase {int(phase) + 1}: {sel[0]['learn']} learns")
-        ax.fill_between(x, [a - b for a, b in zip(y, s, strict=True)], [a + b for a, b in zip(y, s, strict=True)],
-                        color=line.get_color(), alpha=0.2)
+        ax.fill_between(x, *band(y, np.asarray(s), *_extremes(sel)), color=line.get_color(), alpha=0.2)
     _steps_axis(ax, "environment steps in phase")
     ax.set_ylabel("evaluation return")
     ax.set_title(title)
@@ -87,6 +99,13 @@ def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
     ax.legend()
     fig.savefig(out_png, dpi=120)
     plt.close(fig)
+
+
+def _extremes(rows: Sequence[dict[str, Any]]) -> tuple[list[float] | None, list[float] | None]:
+    """The lowest and highest episode return of each evaluation row, where the rows record them."""
+    if not rows or not rows[0].get("return_min"):
+        return None, None
+    return [float(r["return_min"]) for r in rows], [float(r["return_max"]) for r in rows]
 
 
 def plot_episode(trace: Sequence[Any], layers: Sequence[str], out_png: Path, title: str) -> None:
@@ -168,7 +187,8 @@ def seeds_table(setups: Sequence[Any]) -> str:
 
 
 def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
-    """Learning curves per environment, mean over seeds with a ±1 std band: over the last phase
+    """Learning curves per environment, mean over seeds with a ±1 std band (clipped to the lowest and
+    highest seed): over the last phase
     (what the AUC measures) and, when a setup trains in several phases, over the whole run, so
     that setups can be compared at the same number of environment steps."""
     plt = _pyplot()
@@ -180,9 +200,9 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
     for row, (whole_run, xlabel) in zip(axes, views, strict=True):
         for ax, env in zip(row, envs, strict=True):
             for s in (s for s in setups if s.env == env):
-                steps, mean, std = s.curve(whole_run)
+                steps, mean, std, lowest, highest = s.curve(whole_run)
                 line, = ax.plot(steps, mean, label=f"{s.method} ({len(s.runs)} seeds)")
-                ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
+                ax.fill_between(steps, *band(mean, std, lowest, highest), color=line.get_color(), alpha=0.2)
             ax.set_title(env)
             _steps_axis(ax, xlabel)
             ax.set_ylabel("evaluation return")
@@ -211,6 +231,8 @@ def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str
             rows = [{
                 "threshold": t,
                 "return_mean": np.mean([float(p[t]["return_mean"]) for p in per_run]),
+                "return_min": min(float(p[t].get("return_min") or p[t]["return_mean"]) for p in per_run),
+                "return_max": max(float(p[t].get("return_max") or p[t]["return_mean"]) for p in per_run),
                 "return_std": np.std([float(p[t]["return_mean"]) for p in per_run]) if len(per_run) > 1
                 else float(per_run[0][t]["return_std"]),
                 "repetition": np.mean([float(p[t]["repetition"]) for p in per_run]),
@@ -266,12 +288,14 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
 
 
 def plot_threshold_sweep(rows: Sequence[dict[str, Any]], out_png: Path, title: str) -> None:
-    """Return and action frequency (share of steps with a new action) against the threshold."""
+    """Return (± std, clipped to the lowest and highest return) and action frequency (share of steps
+    with a new action) against the threshold."""
     plt = _pyplot()
     x = [float(r["threshold"]) for r in rows]
+    mean = np.array([float(r["return_mean"]) for r in rows])
+    low, high = band(mean, np.array([float(r["return_std"]) for r in rows]), *_extremes(rows))
     fig, ax = plt.subplots(figsize=(6.5, 4), constrained_layout=True)
-    ax.errorbar(x, [float(r["return_mean"]) for r in rows], yerr=[float(r["return_std"]) for r in rows],
-                marker="o", color="C0", capsize=3)
+    ax.errorbar(x, mean, yerr=[mean - low, high - mean], marker="o", color="C0", capsize=3)
     ax.set_xlabel("evaluation threshold (fraction of max action)")
     ax.set_ylabel("evaluation return", color="C0")
     other = ax.twinx()

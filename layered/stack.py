@@ -33,7 +33,7 @@ def combiner_kind(recipe: Recipe, i: int) -> str | None:
 def reward_per_step(recipe: Recipe) -> float | None:
     """The environment's return range per step, (best - worst return) / episode steps, if known."""
     info = env_info(recipe.env.id)
-    return_range = recipe.env.return_range or info.return_range
+    return_range = recipe.return_range()
     if return_range is None or not info.episode_steps:
         return None
     return (return_range[1] - return_range[0]) / info.episode_steps

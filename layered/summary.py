@@ -91,8 +91,9 @@ class Setup:
         values = np.array([r.final.get(key, np.nan) for r in self.runs], np.float64)
         return float(np.mean(values)), float(np.std(values))
 
-    def curve(self, whole_run: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Steps, mean and std over seeds of the evaluation return, over the last phase or the whole run.
+    def curve(self, whole_run: bool = False) -> tuple[np.ndarray, ...]:
+        """Steps, mean, std, lowest and highest over seeds of the evaluation return, over the last
+        phase or the whole run.
 
         Runs are aligned evaluation by evaluation, up to the fewest any run made, at the mean of their
         steps: a slow layer evaluates on its first decision after the schedule, a step or two apart
@@ -100,7 +101,9 @@ class Setup:
         curves = [r.total_curve if whole_run else r.curve for r in self.runs]
         n = min(len(c) for c in curves)
         points = np.array([c[:n] for c in curves], np.float64).reshape(len(curves), n, 2)
-        return points[:, :, 0].mean(axis=0), points[:, :, 1].mean(axis=0), points[:, :, 1].std(axis=0)
+        returns = points[:, :, 1]
+        return points[:, :, 0].mean(axis=0), returns.mean(axis=0), returns.std(axis=0), returns.min(axis=0), \
+            returns.max(axis=0)
 
 
 def group(runs: Iterable[Run]) -> list[Setup]:

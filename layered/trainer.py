@@ -22,7 +22,6 @@ import torch
 
 from layered.agents import LayeredEnv, make_aec_env
 from layered.checkpoint import load_checkpoint, save_checkpoint, write_atomically
-from layered.envs import env_info
 from layered.evaluate import evaluate
 from layered.interrupt import StopRequest, Stopped
 from layered.learners import LEARNERS, Learner, UpdateStats
@@ -375,7 +374,7 @@ def run_plugins(run_dir: Path) -> list[str]:
 
 
 def _auc(recipe: Recipe, curve: list[tuple[int, Evaluation]]) -> float | None:
-    return_range = recipe.env.return_range or env_info(recipe.env.id).return_range
+    return_range = recipe.return_range()
     if return_range is None:
         return None
     return normalised_auc([s for s, _ in curve], [e.return_mean for _, e in curve], return_range)

@@ -28,8 +28,9 @@ def test_setup_statistics_are_mean_and_population_std_over_seeds():
                                               run("pendulum/td3", 1, -300.0, 0.7, [(0, -1200), (10, -300), (20, 0)])))
     assert s.stat("return_mean") == pytest.approx((-200.0, 100.0))
     assert s.stat("auc") == pytest.approx((0.6, 0.1))
-    steps, mean, std = s.curve()  # only the evaluations both runs made
+    steps, mean, std, lowest, highest = s.curve()  # only the evaluations both runs made
     assert list(steps) == [0, 10] and list(mean) == [-1100, -200] and list(std) == [100, 100]
+    assert list(lowest) == [-1200, -300] and list(highest) == [-1000, -100]
     assert s.method == "td3"
 
 
@@ -45,12 +46,22 @@ def test_whole_run_curve_lays_phases_end_to_end(tmp_path):
     assert run_.total_curve == ((0, -900.0), (5001, -400.0), (10002, -200.0), (15002, -160.0), (20002, -150.0))
 
 
+def test_bands_are_clipped_to_the_return_bounds():
+    from layered.report import band
+
+    # three evaluations of returns 1000 (the task's maximum), 700 ± 300 and 100 ± 50
+    low, high = band([1000.0, 700.0, 100.0], [0.0, 300.0, 50.0], [1000.0, 200.0, 60.0], [1000.0, 1000.0, 160.0])
+    assert list(low) == [1000.0, 400.0, 60.0] and list(high) == [1000.0, 1000.0, 150.0]
+    low, high = band([5.0], [10.0])
+    assert list(low) == [-5.0] and list(high) == [15.0]
+
+
 def test_seeds_align_evaluation_by_evaluation_at_their_mean_step():
     a = run("p/tla-c", 0, 0, 0, [])
     s = Setup("Pendulum-v1", "p/tla-c", (
         Run(a.path, a.env, a.label, 0, False, a.final, (), ((0, -900.0), (5001, -400.0), (10002, -200.0))),
         Run(a.path, a.env, a.label, 1, False, a.final, (), ((0, -700.0), (5003, -200.0)))))
-    steps, mean, std = s.curve(whole_run=True)
+    steps, mean, std, _, _ = s.curve(whole_run=True)
     assert list(steps) == [0, 5002] and list(mean) == [-800, -300] and list(std) == [100, 100]
 
 
@@ -78,6 +89,24 @@ def test_report_command_on_real_runs(tmp_path):
     assert (tmp_path / "report" / "curves.png").stat().st_size > 0
     assert len(find_runs([tmp_path / "runs"])) == 3
     assert "pendulum/td3,td3,0 1," in (tmp_path / "report" / "summary.csv").read_text()
+    # the evaluations behind Fig. 2 and the gallery ran once, for the stack with a threshold and two layers
+    assert "[1/1] " in proc.stderr and "tla-c-s0: evaluating threshold sweep and gallery" in proc.stderr
+    assert sorted(p.name for p in (tmp_path / "runs" / "tla-c-s0" / "eval").iterdir()) == [
+        "gallery-fast.png", "threshold-sweep.csv"]
+    assert not (tmp_path / "runs" / "td3-s0" / "eval").exists()
+    report = (tmp_path / "report" / "report.md").read_text()
+    assert "threshold-Pendulum-v1-tla-c.png" in report and "gallery-Pendulum-v1-tla-c.png" in report
+    again = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(tmp_path / "runs"),
+                            "--out", str(tmp_path / "report2")], capture_output=True, text=True)
+    assert again.returncode == 0 and "evaluating" not in again.stderr  # kept in the runs, reused
+
+
+def test_report_without_extra_evaluations_runs_none(tmp_path):
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
+    train(recipe, tmp_path / "run", max_steps=200, progress=False)
+    proc = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(tmp_path / "run"),
+                           "--out", str(tmp_path / "report"), "--no-extra-evals"], capture_output=True, text=True)
+    assert proc.returncode == 0 and not (tmp_path / "run" / "eval").exists()
 
 
 def test_report_of_nothing_is_a_clear_error(tmp_path):

@@ -1,0 +1,102 @@
+"""The evaluations behind the paper's figures, run on a finished run directory and kept in its
+`eval/` folder: the threshold sweep (Fig. 2) and the gallery of states where a layer acts.
+`layered eval` writes them anew; `layered report` reuses what is there and runs what is missing."""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from layered.learners import Learner
+from layered.plugins import load_plugins
+from layered.recipe import Recipe, load_recipe
+from layered.stack import combiner_kind
+
+SWEEP_FILE = "threshold-sweep.csv"
+DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]
+
+
+@dataclass(frozen=True)
+class TrainedRun:
+    """A finished run ready to evaluate: its recipe, restored learners and the layers of its last phase."""
+
+    path: Path
+    recipe: Recipe
+    learners: dict[str, Learner]
+    active: list[str]
+
+    @property
+    def seed(self) -> int:
+        """The evaluation seed, as during training."""
+        return self.recipe.train.seed + self.recipe.eval.seed_offset
+
+    @property
+    def eval_dir(self) -> Path:
+        folder = self.path / "eval"
+        folder.mkdir(exist_ok=True)
+        return folder
+
+
+def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | None = None) -> TrainedRun:
+    """The run in `run_dir` with each phase's `final` or `best` weights (default: its train.select),
+    after importing the plugins it was trained with and `plugins`."""
+    from layered.trainer import load_learners, phases_of, run_plugins
+
+    load_plugins(run_plugins(run_dir) + list(plugins or []))  # refuses a directory that holds no run
+    recipe = load_recipe(run_dir / "recipe.toml")
+    return TrainedRun(run_dir, recipe, load_learners(recipe, run_dir, weights), list(phases_of(recipe)[-1].active))
+
+
+def has_threshold(recipe: Recipe) -> bool:
+    """Whether some layer's contribution passes a residual combiner's threshold: what Fig. 2 varies."""
+    return any(combiner_kind(recipe, i) == "residual-clip" for i in range(len(recipe.layers)))
+
+
+def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None) -> list[dict[str, Any]]:
+    """Evaluate at each threshold and write eval/threshold-sweep.csv; its rows."""
+    from layered.evaluate import threshold_sweep as sweep
+
+    rows = sweep(run.recipe, run.learners, run.active, thresholds, episodes or run.recipe.eval.episodes, run.seed)
+    with (run.eval_dir / SWEEP_FILE).open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return rows
+
+
+def gallery(run: TrainedRun, layer: str) -> tuple[Path, int, int]:
+    """Render the most different states where `layer` acts into eval/gallery-LAYER.png; the file,
+    the steps at which the layer acted and the number of states shown."""
+    from layered.evaluate import states_where_layer_acts
+    from layered.report import save_gallery
+
+    acting, shots = states_where_layer_acts(run.recipe, run.learners, run.active, layer, run.seed)
+    png = run.eval_dir / f"gallery-{layer}.png"
+    save_gallery(shots, layer, png, f"{run.recipe.env.id}: states where layer {layer!r} acts")
+    return png, len(acting), len(shots)
+
+
+def missing_figure_evals(run_dir: Path) -> list[str]:
+    """What `layered report` would evaluate for this run: a threshold sweep where a threshold
+    applies and none is kept, a gallery of the fastest layer where a stack has several layers."""
+    recipe = load_recipe(run_dir / "recipe.toml")
+    missing = []
+    if has_threshold(recipe) and not (run_dir / "eval" / SWEEP_FILE).exists():
+        missing.append("threshold sweep")
+    if len(recipe.layers) > 1 and not (run_dir / "eval" / f"gallery-{recipe.layers[-1].name}.png").exists():
+        missing.append("gallery")
+    return missing
+
+
+def run_missing_figure_evals(run_dir: Path) -> list[str]:
+    """Run what `missing_figure_evals` names for this run; what was run."""
+    missing = missing_figure_evals(run_dir)
+    if missing:
+        run = open_run(run_dir)
+        if "threshold sweep" in missing:
+            threshold_sweep(run, DEFAULT_SWEEP)
+        if "gallery" in missing:
+            gallery(run, run.active[-1])
+    return missing
