@@ -185,46 +185,38 @@ def floor(env_id: str, threads: int) -> dict[str, float]:
             "gflops_per_s": flops / floor_s / 1e9, "share_of_floor": floor_s / update_s, "act_us": 1e6 * act_s}
 
 
-LATENCY_STACKS = {1: "pendulum/td3.toml", 2: "pendulum/tla-c.toml", 3: "research/pendulum-residual-3.toml"}
+LATENCY_STACKS = ["pendulum/td3.toml", "pendulum/tla-c.toml", "research/pendulum-residual-3.toml",
+                  "hopper/tla-realtime.toml", "research/hopper-residual-3.toml"]
 
 
-def latency(layers: int, threads: int, steps: int = 4000) -> dict[str, float]:
-    """Time per base step of acting with a stack (no learning) through the agent view, environment
-    step included, and of the environment step alone; median and 99th percentile in microseconds."""
-    import gymnasium as gym
-    import numpy as np
+def latency(recipe_name: str, threads: int, steps: int = 4000) -> dict[str, Any]:
+    """Time per base step from observation to executed action (the environment's step excluded) of
+    a stack with untrained networks of the recipe's sizes: in the library, as `layered eval` acts,
+    and exported with `layered export` (TorchScript, and ONNX where onnxruntime is installed); the
+    same measurement as `layered export` prints."""
+    import importlib.util
+    import tempfile
+    from pathlib import Path
 
     import layered
-    from layered.trainer import build_learners
+    from layered.export import export_stack
+    from layered.latency import compare
+    from layered.trainer import build_learners, phases_of
 
     _set_threads(threads)
     recipes = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "recipes")
-    recipe = layered.load_recipe(os.path.join(recipes, LATENCY_STACKS[layers]))
+    recipe = layered.load_recipe(os.path.join(recipes, recipe_name))
     learners = build_learners(recipe)
-    env = layered.make_aec_env(recipe, seed=0, evaluation=True)
-    marks = [time.perf_counter()]
-    while len(marks) <= steps:
-        for name in env.agent_iter():
-            obs, _, terminated, truncated, _ = env.last()
-            before = env.episode_steps
-            env.step(None if terminated or truncated else learners[name].act(obs, explore=False))
-            if env.episode_steps > before:
-                marks.append(time.perf_counter())
-        env.reset()
-        marks.append(time.perf_counter())  # the reset's time is not a step's
-        marks.pop(-2)
-    per_step = np.diff(marks[:steps + 1]) * 1e6
-    plain = gym.make("Pendulum-v1")
-    plain.reset(seed=0)
-    action, env_marks = np.zeros(1, np.float32), []
-    for _ in range(steps):
-        start = time.perf_counter()
-        _, _, terminated, truncated, _ = plain.step(action)
-        env_marks.append((time.perf_counter() - start) * 1e6)
-        if terminated or truncated:
-            plain.reset()
-    return {"median_us": float(np.median(per_step)), "p99_us": float(np.percentile(per_step, 99)),
-            "env_median_us": float(np.median(env_marks))}
+    active = list(phases_of(recipe)[-1].active)
+    backends = ["torchscript"] + (["onnx"] if importlib.util.find_spec("onnxruntime") else [])
+    out: dict[str, Any] = {"layers": len(active), "env": recipe.env.id}
+    with tempfile.TemporaryDirectory() as folder:
+        for backend in backends:
+            exported = export_stack(recipe, learners, active, Path(folder) / backend, backend)
+            result = compare(recipe, learners, active, exported, 1, 0, min_steps=steps)
+            out["library"] = result.library.__dict__
+            out[backend] = {**result.exported.__dict__, "max_difference": result.max_difference}
+    return out
 
 
 def spawn(args: list[str], threads: int) -> dict[str, Any]:
@@ -245,6 +237,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch threads of every run (default 1)")
     parser.add_argument("--precision", choices=["float32", "bfloat16"], default="float32",
                         help="layered's learner.precision (SB3 runs in float32; default float32)")
+    parser.add_argument("--sections", default="training,floor,latency",
+                        help="which parts to run, comma-separated (default training,floor,latency)")
     parser.add_argument("--child", nargs=7, help=argparse.SUPPRESS)
     parser.add_argument("--floor", nargs=2, help=argparse.SUPPRESS)
     parser.add_argument("--latency", nargs=2, help=argparse.SUPPRESS)
@@ -257,10 +251,21 @@ def main() -> None:
         print(json.dumps(floor(args.floor[0], int(args.floor[1]))))
         return
     if args.latency:
-        print(json.dumps(latency(int(args.latency[0]), int(args.latency[1]))))
+        print(json.dumps(latency(args.latency[0], int(args.latency[1]))))
         return
     envs = ["Pendulum-v1"] if args.quick else args.envs.split(",")
     steps, repeats = (3000, 1) if args.quick else (args.steps, args.repeats)
+    sections = args.sections.split(",")
+    if "training" in sections:
+        training(envs, steps, repeats, args)
+    if "floor" in sections:
+        floors(envs, args.threads)
+    if "latency" in sections:
+        latencies(args.threads)
+
+
+def training(envs: list[str], steps: int, repeats: int, args: argparse.Namespace) -> None:
+    """Training-phase steps/s, wall time and peak memory of both frameworks, alternating run by run."""
     print(f"TD3, layered ({args.precision} updates) against Stable-Baselines3: {steps} steps per run "
           f"({args.warmup} random), {repeats} run(s) each, {args.threads} torch thread(s), {os.cpu_count()} cores")
     results: list[dict[str, Any]] = []
@@ -283,20 +288,30 @@ def main() -> None:
         print(f"| {env_id} | {med['layered']['steps_per_second']:.1f} | {med['sb3']['steps_per_second']:.1f} "
               f"| {ratio:.2f}x | {med['layered']['wall_seconds']:.1f} | {med['sb3']['wall_seconds']:.1f} "
               f"| {med['layered']['peak_mib']:.0f} | {med['sb3']['peak_mib']:.0f} |")
+
+
+def floors(envs: list[str], threads: int) -> None:
+    """layered's update time against this machine's matrix-multiply floor, and one act call."""
     print("\n| environment | update ms | matmul floor ms | GFLOP / update | GEMM GFLOP/s | share of floor "
           "| act µs |")
     print("|---|---|---|---|---|---|---|")
     for env_id in envs:
-        f = spawn(["--floor", env_id, str(args.threads)], args.threads)
+        f = spawn(["--floor", env_id, str(threads)], threads)
         print(f"| {env_id} | {f['update_ms']:.2f} | {f['floor_ms']:.2f} | {f['gflop']:.3f} "
               f"| {f['gflops_per_s']:.0f} | {f['share_of_floor']:.0%} | {f['act_us']:.0f} |")
-    print("\nActing with a stack on Pendulum-v1 (no learning), per base step, environment step included:")
-    print("| layers | recipe | median µs | p99 µs | of which Pendulum's own step (median µs) |")
-    print("|---|---|---|---|---|")
-    for layers, recipe in LATENCY_STACKS.items():
-        lat = spawn(["--latency", str(layers), str(args.threads)], args.threads)
-        print(f"| {layers} | {recipe} | {lat['median_us']:.0f} | {lat['p99_us']:.0f} | {lat['env_median_us']:.0f} |")
 
+
+def latencies(threads: int) -> None:
+    """Decision latency of 1- to 3-layer stacks, in the library and exported."""
+    print("\nDecision latency: time per base step from observation to executed action, environment step "
+          "excluded, untrained networks of each recipe's sizes (median / p99 µs):")
+    print("| recipe | environment | layers | library | exported TorchScript | exported ONNX |")
+    print("|---|---|---|---|---|---|")
+    for name in LATENCY_STACKS:
+        lat = spawn(["--latency", name, str(threads)], threads)
+        cells = [f"{lat[k]['median_us']:.0f} / {lat[k]['p99_us']:.0f}" if k in lat else "n/a"
+                 for k in ("library", "torchscript", "onnx")]
+        print(f"| {name} | {lat['env']} | {lat['layers']} | {' | '.join(cells)} |")
 
 if __name__ == "__main__":
     main()

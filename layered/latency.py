@@ -97,9 +97,10 @@ def _warm_up(stack: ExportedStack, env: gym.Env, seed: int) -> None:
 
 
 def compare(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], exported: Path, episodes: int,
-            seed: int, threshold: float | None = None) -> Comparison:
-    """Play `episodes` episodes (seeds seed, seed + 1, ...) with the library and with the stack
-    exported to `exported`, and compare their executed actions and their time per base step."""
+            seed: int, threshold: float | None = None, min_steps: int = 0) -> Comparison:
+    """Play `episodes` episodes (seeds seed, seed + 1, ...), and more until `min_steps` base steps,
+    with the library and with the stack exported to `exported`; compare their executed actions and
+    their time per base step."""
     library = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, record=True)
     timer = _StepTimer(library.base)
     library.base = timer
@@ -108,8 +109,8 @@ def compare(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], 
     _warm_up(stack, env, seed)
     library_seconds: list[float] = []
     exported_seconds: list[float] = []
-    difference, steps = 0.0, 0
-    for k in range(episodes):
+    difference, steps, k = 0.0, 0, 0
+    while k < episodes or steps < min_steps:
         timer.calls.clear()
         run_episode(library, learners, seed + k)
         library_seconds += [start - end for (_, end), (start, _) in zip(timer.calls, timer.calls[1:], strict=False)]
@@ -122,6 +123,7 @@ def compare(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], 
         else:
             difference = max(difference, float(np.max(np.abs(ours - theirs), initial=0.0)))
         steps += len(actions)
+        k += 1
     library.close()
     env.close()
-    return Comparison(episodes, steps, difference, Latency.of(library_seconds), Latency.of(exported_seconds))
+    return Comparison(k, steps, difference, Latency.of(library_seconds), Latency.of(exported_seconds))

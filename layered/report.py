@@ -312,6 +312,16 @@ def _signed(values: Any) -> str:
     return " ".join(f"{float(v):+.2f}" for v in values[:3]) + (" ..." if len(values) > 3 else "")
 
 
+def _content(frames: np.ndarray, margin: int = 10) -> tuple[slice, slice]:
+    """The rows and columns where any of the frames differs from its top-left pixel's colour: the
+    scene without the empty background that some renderers draw around it."""
+    busy = np.any(frames != frames[:, :1, :1], axis=(0, 3))
+    if not busy.any():
+        return slice(None), slice(None)
+    ys, xs = np.flatnonzero(busy.any(axis=1)), np.flatnonzero(busy.any(axis=0))
+    return (slice(max(ys[0] - margin, 0), ys[-1] + margin + 1), slice(max(xs[0] - margin, 0), xs[-1] + margin + 1))
+
+
 def save_gallery(shots: Sequence[tuple[int, Any, Any]], layer: str, out_png: Path, title: str) -> None:
     """The rendered states in one row, each titled with its step, the layer's part of the action
     and the executed action."""
@@ -319,8 +329,9 @@ def save_gallery(shots: Sequence[tuple[int, Any, Any]], layer: str, out_png: Pat
     fig, axes = plt.subplots(1, max(1, len(shots)), figsize=(2.2 * max(1, len(shots)), 2.9), squeeze=False)
     for ax in axes[0]:
         ax.axis("off")
+    rows, cols = _content(np.asarray([frame for _, frame, _ in shots])) if shots else (slice(None), slice(None))
     for ax, (step, frame, record) in zip(axes[0], shots, strict=False):
-        ax.imshow(frame)
+        ax.imshow(frame[rows, cols])
         ax.set_title(f"step {step}\n{layer}: {_signed(record.contributions[layer])}\naction: {_signed(record.action)}",
                      fontsize="x-small")
     fig.suptitle(title if shots else f"{title}: the layer never acted", fontsize="medium")
