@@ -11,11 +11,20 @@ import sys
 from pydantic import BaseModel
 
 from layered.learners import LEARNERS
-from layered.recipe import CombineConfig, EnvConfig, EvalConfig, LayerConfig, PhaseConfig, Recipe, TrainConfig
+from layered.recipe import (
+    CombineConfig,
+    EnvConfig,
+    EvalConfig,
+    LayerConfig,
+    LogConfig,
+    PhaseConfig,
+    Recipe,
+    TrainConfig,
+)
 
 TABLES: list[tuple[str, type[BaseModel]]] = [
     ("[env]", EnvConfig), ("[[layers]]", LayerConfig), ("[combine]", CombineConfig),
-    ("[train]", TrainConfig), ("[[train.phases]]", PhaseConfig), ("[eval]", EvalConfig),
+    ("[train]", TrainConfig), ("[[train.phases]]", PhaseConfig), ("[eval]", EvalConfig), ("[log]", LogConfig),
 ]
 
 
