@@ -28,6 +28,7 @@ ROW = 18  # pixels per layer row
 ACTION_ROW = 44
 HEADER = 20
 COLOURS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75)]
+ACTION_COLOURS = [(20, 20, 20), (0, 150, 150), (200, 0, 150), (130, 130, 0), (90, 90, 220), (230, 120, 0)]
 GREY, LIGHT, WHITE, INK = (150, 150, 150), (235, 235, 235), (255, 255, 255), (30, 30, 30)
 MIN_WIDTH = 480  # small renders are scaled up so that the strip stays legible
 
@@ -104,11 +105,11 @@ class StripVideo:
         draw.line((LABEL_WIDTH, top + ACTION_ROW / 2, width - 4, top + ACTION_ROW / 2), fill=LIGHT)  # mid-range
         span = np.where(self.high > self.low, self.high - self.low, 1.0)
         bottom, scale = top + ACTION_ROW - 4, ACTION_ROW - 8
-        for d in range(min(len(self.low), len(COLOURS))):
+        for d in range(min(len(self.low), len(ACTION_COLOURS))):  # the first six dimensions
             points = [(x0 + (k + 0.5) * cell, bottom - scale * float((a[d] - self.low[d]) / span[d]))
                       for k, (_, _, a) in enumerate(self.history)]
             if len(points) > 1:
-                draw.line(points, fill=COLOURS[-1 - d], width=2)
+                draw.line(points, fill=ACTION_COLOURS[d], width=2)
 
     def close(self) -> None:
         self.writer.close()
