@@ -1,4 +1,5 @@
-"""A fixed-capacity replay buffer of layer transitions, stored as preallocated numpy arrays."""
+"""A fixed-capacity replay buffer of layer transitions, stored as preallocated tensors on the
+learner's device, so that minibatches are drawn where the networks are."""
 
 from __future__ import annotations
 
@@ -36,45 +37,41 @@ class ReplayBuffer:
 
     FIELDS = ("obs", "action", "reward", "next_obs", "not_done", "discount")
 
-    def __init__(self, obs_dim: int, action_dim: int, capacity: int) -> None:
+    def __init__(self, obs_dim: int, action_dim: int, capacity: int, device: torch.device | str = "cpu") -> None:
         self.capacity = capacity
         self.size = 0
         self._next = 0
-        self._obs = np.zeros((capacity, obs_dim), np.float32)
-        self._action = np.zeros((capacity, action_dim), np.float32)
-        self._reward = np.zeros((capacity, 1), np.float32)
-        self._next_obs = np.zeros((capacity, obs_dim), np.float32)
-        self._not_done = np.zeros((capacity, 1), np.float32)
-        self._discount = np.zeros((capacity, 1), np.float32)
+        self.device = torch.device(device)
+        widths = {"obs": obs_dim, "action": action_dim, "reward": 1, "next_obs": obs_dim, "not_done": 1, "discount": 1}
+        # empty, not zeros: rows are read only once written, and untouched pages of a large buffer
+        # then take no memory
+        self._store = {key: torch.empty((capacity, widths[key]), dtype=torch.float32, device=self.device)
+                       for key in self.FIELDS}
 
     def add(self, t: Transition) -> None:
         """Store one transition."""
-        i = self._next
-        self._obs[i] = t.obs
-        self._action[i] = t.action
-        self._reward[i] = t.reward
-        self._next_obs[i] = t.next_obs
-        self._not_done[i] = 0.0 if t.terminated else 1.0
-        self._discount[i] = t.discount
-        self._next = (i + 1) % self.capacity
+        row = {"obs": t.obs, "action": t.action, "reward": t.reward, "next_obs": t.next_obs,
+               "not_done": 0.0 if t.terminated else 1.0, "discount": t.discount}
+        for key, value in row.items():
+            self._store[key][self._next] = torch.as_tensor(np.asarray(value, np.float32))
+        self._next = (self._next + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
     def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
-        """A uniform minibatch drawn with replacement."""
-        idx = rng.integers(0, self.size, size=batch_size)
-        arrays = (self._obs, self._action, self._reward, self._next_obs, self._not_done, self._discount)
-        return Batch(*(torch.from_numpy(a[idx]) for a in arrays))
+        """A uniform minibatch drawn with replacement (indices from `rng`, rows gathered on the device)."""
+        idx = torch.from_numpy(rng.integers(0, self.size, size=batch_size)).to(self.device, non_blocking=True)
+        return Batch(*(self._store[key][idx] for key in self.FIELDS))
 
     def __len__(self) -> int:
         return self.size
 
     def state_dict(self) -> dict[str, torch.Tensor | int]:
         """The stored transitions as tensors, for resuming a run."""
-        stored = {key: torch.from_numpy(getattr(self, f"_{key}")[: self.size].copy()) for key in self.FIELDS}
+        stored = {key: self._store[key][: self.size].cpu().clone() for key in self.FIELDS}
         return {"size": self.size, "next": self._next, **stored}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what `state_dict` returned."""
         self.size, self._next = int(state["size"]), int(state["next"])
         for key in self.FIELDS:
-            getattr(self, f"_{key}")[: self.size] = state[key].numpy()
+            self._store[key][: self.size] = state[key].to(self.device)

@@ -65,7 +65,7 @@ def load_checkpoint(path: Path, layer: str) -> dict[str, Any]:
     if not path.exists():
         raise CheckpointError(f"{path}: no checkpoint for layer {layer!r}")
     try:
-        data = torch.load(path, weights_only=True)
+        data = torch.load(path, weights_only=True, map_location="cpu")  # learners move what they load to their device
     except (RuntimeError, EOFError, pickle.UnpicklingError, ValueError, OSError) as e:
         raise CheckpointError(f"{path}: not a readable checkpoint ({e.__class__.__name__}: {e})") from None
     if not isinstance(data, dict) or data.get("layer") != layer:

@@ -71,6 +71,7 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--steps", type=_positive, help="cap every training phase at N environment steps")
     tr.add_argument("--threads", type=_positive, help="torch threads (use 1 per process when running several)")
     tr.add_argument("--force", action="store_true", help="start over in an --out that holds a stopped or finished run")
+    tr.add_argument("--device", choices=["cpu", "cuda", "auto"], help="where the learners run (learner.device)")
     tr.add_argument("--tensorboard", action="store_true",
                     help="also write TensorBoard event files (as log.tensorboard=true; extra layered[tensorboard])")
     _plugin_option(tr)
@@ -120,6 +121,8 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--jobs", type=_positive, default=os.cpu_count() or 1, help="parallel processes (default: cores)")
     sw.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep directory (default runs/sweep)")
     sw.add_argument("--steps", type=_positive, help="cap every training phase at N environment steps")
+    sw.add_argument("--device", choices=["cpu", "cuda", "auto"],
+                    help="where the learners run (learner.device); with cuda, the --jobs processes share the GPU")
     sw.add_argument("--backend", choices=["local", "ray"], default="local",
                     help="local processes (default) or Ray tasks (needs the extra layered[ray])")
     sw.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
@@ -145,6 +148,7 @@ def _train(args: argparse.Namespace) -> int:
 
     overrides = list(args.overrides) + ([f"train.seed={args.seed}"] if args.seed is not None else [])
     overrides += ["log.tensorboard=true"] if args.tensorboard else []
+    overrides += [f"learner.device={args.device}"] if args.device else []
     plugins = load_plugins(args.plugin)
     recipe = load_recipe(args.recipe, overrides)
     out = args.out or Path("runs") / f"{Path(args.recipe).stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -302,6 +306,7 @@ def _sweep(args: argparse.Namespace) -> int:
     from layered.sweep import plan, run_local, run_ray
 
     overrides = [a for a in args.recipes if "=" in a] + args.overrides
+    overrides += [f"learner.device={args.device}"] if args.device else []
     recipes = [a for a in args.recipes if "=" not in a]
     plugins = load_plugins(args.plugin)
     jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins)

@@ -101,15 +101,16 @@ def test_temporl_learns_from_every_period_and_every_partial_repetition():
     path = tuple((states[k + 1], float(k + 1)) for k in range(3))  # rewards 1, 2, 3
     learner.observe(Transition(states[0], np.array([0.3, 3.0], np.float32), 6.0, states[3], True, 0.5, path))
     assert len(learner.td3.buffer) == 3 and len(learner.choice.buffer) == 6  # 3 periods; 3 + 2 + 1 segments
-    sb = learner.choice.buffer
-    rows = {(int(sb._obs[i, 0]), int(sb._action[i, 1])): (float(sb._reward[i, 0]), float(sb._discount[i, 0]),
-                                                          float(sb._not_done[i, 0])) for i in range(6)}
+    sb = learner.choice.buffer.state_dict()
+    rows = {(int(sb["obs"][i, 0]), int(sb["action"][i, 1])): (float(sb["reward"][i, 0]), float(sb["discount"][i, 0]),
+                                                              float(sb["not_done"][i, 0])) for i in range(6)}
     # keyed by (start state, choice index = length - 1)
     assert rows[(0, 2)] == (1 + 0.5 * 2 + 0.25 * 3, 0.125, 0.0)  # the whole skip ends the episode
     assert rows[(0, 1)] == (1 + 0.5 * 2, 0.25, 1.0)
     assert rows[(1, 0)] == (2.0, 0.5, 1.0)
     assert rows[(2, 0)] == (3.0, 0.5, 0.0)
-    assert float(learner.td3.buffer._not_done[2, 0]) == 0.0 and float(learner.td3.buffer._not_done[0, 0]) == 1.0
+    not_done = learner.td3.buffer.state_dict()["not_done"]
+    assert float(not_done[2, 0]) == 0.0 and float(not_done[0, 0]) == 1.0
     action = learner.act(states[0], explore=True)
     assert space.contains(action) and action[1] in (1, 2, 3, 4)
     assert learner.update() is not None

@@ -124,7 +124,7 @@ def test_time_limit_truncation_bootstraps_and_termination_does_not(tmp_path):
         state.start_phase(0, ("l0",), recipe.eval.every, recipe.eval.every)
         run_phase(run, state, phases_of(recipe)[0], 450)
         buffer = learners["l0"].buffer
-        not_done = buffer._not_done[: len(buffer)]
+        not_done = buffer.state_dict()["not_done"]
         assert len(buffer) >= 400  # Pendulum: two truncated episodes stored whole
         assert bool((not_done == 0).any()) is terminates
 

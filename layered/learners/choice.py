@@ -26,16 +26,17 @@ class ChoiceQ:
         obs_dim, act_dim = td3.obs_space.shape[0], td3.action_space.shape[0]
         self.td3 = td3
         self.n = n
-        self.net = mlp((obs_dim + act_dim, *cfg.hidden, n))
+        self.net = mlp((obs_dim + act_dim, *cfg.hidden, n)).to(td3.device)
         self.opt = adam(self.net.parameters(), cfg.lr)
-        self.buffer = ReplayBuffer(obs_dim, act_dim + 1, cfg.buffer_size)  # the choice is the last column
+        self.buffer = ReplayBuffer(obs_dim, act_dim + 1, cfg.buffer_size, td3.device)  # the choice is the last column
 
     @torch.no_grad()
     def choose(self, obs: np.ndarray, action: np.ndarray, epsilon: float, rng: np.random.Generator) -> int:
         """The index of the best choice, or with probability `epsilon` a uniformly random one."""
         if epsilon and rng.random() < epsilon:
             return int(rng.integers(self.n))
-        return int(self.net(torch.as_tensor(np.concatenate([obs, action]), dtype=torch.float32)).argmax())
+        x = torch.as_tensor(np.concatenate([obs, action]), dtype=torch.float32, device=self.td3.device)
+        return int(self.net(x).argmax())
 
     def add(self, transition: Transition, choice: int) -> None:
         """Store that `choice` was made with `transition.action` (without the choice's own output)."""
@@ -116,7 +117,8 @@ class TD3WithChoice(Learner):
 
     def policy(self) -> nn.Module:
         values = [self.encode(k) for k in range(self.choice.n)]
-        return ActionAndChoice(self.td3.policy(), copy.deepcopy(self.choice.net).eval().requires_grad_(False), values)
+        choice = copy.deepcopy(self.choice.net).cpu().eval().requires_grad_(False)
+        return ActionAndChoice(self.td3.policy(), choice, values)
 
     def act_macs(self) -> int:
         return self.td3.act_macs() + self.choice.macs()

@@ -9,7 +9,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 import torch
 from gymnasium.spaces import Box
-from pydantic import Field
+from pydantic import Field, field_validator
 from torch import nn
 
 from layered.buffer import ReplayBuffer, Transition
@@ -42,9 +42,27 @@ class TD3Config(LearnerConfig):
     """Critic updates per actor and target update."""
     buffer_size: int = Field(default=1_000_000, gt=0)
     """Replay capacity in transitions."""
+    device: Literal["cpu", "cuda", "auto"] = "cpu"
+    """Where networks, replay buffer and updates live: `cuda` (a GPU), `cpu`, or `auto` (cuda where
+    one is available). Exact resumes and the suite's checks are promised on CPU."""
     precision: Literal["float32", "bfloat16"] = "float32"
     """Precision of the updates' matrix products; `bfloat16` (autocast, weights and optimiser
     kept in float32) is about a third faster on CPUs with AVX-512 BF16 or AMX. Acting is float32."""
+
+    @field_validator("device")
+    @classmethod
+    def _device_exists(cls, value: str) -> str:
+        resolve_device(value)
+        return value
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device of a `device` setting; `cuda` without a GPU is refused."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device 'cuda' asked for, but torch sees no CUDA GPU here (use 'cpu' or 'auto')")
+    return torch.device(name)
 
 
 def mlp(sizes: tuple[int, ...]) -> nn.Sequential:
@@ -109,20 +127,21 @@ class TD3(Learner):
     def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: TD3Config,
                  seed: int) -> None:
         super().__init__(obs_space, action_space, layout, config, seed)
-        torch.manual_seed(seed)  # network initialisation
-        self.torch_rng = torch.Generator().manual_seed(seed)  # target smoothing noise
+        self.device = resolve_device(config.device)
+        torch.manual_seed(seed)  # network initialisation, on the CPU whatever the device: the same weights
+        self.torch_rng = torch.Generator(self.device).manual_seed(seed)  # target smoothing noise
         obs_dim, act_dim = obs_space.shape[0], action_space.shape[0]
         low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
-        self.actor = Actor(obs_dim, low, high, config.hidden)
-        self.critic = TwinCritic(obs_dim, act_dim, config.hidden)
+        self.actor = Actor(obs_dim, low, high, config.hidden).to(self.device)
+        self.critic = TwinCritic(obs_dim, act_dim, config.hidden).to(self.device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
         self.actor_opt = adam(self.actor.parameters(), config.lr)
         self.critic_opt = adam(self.critic.parameters(), config.lr)
-        self.buffer = ReplayBuffer(obs_dim, act_dim, config.buffer_size)
+        self.buffer = ReplayBuffer(obs_dim, act_dim, config.buffer_size, self.device)
         self.updates = 0
-        self._low = torch.as_tensor(low, dtype=torch.float32)
-        self._high = torch.as_tensor(high, dtype=torch.float32)
+        self._low = torch.as_tensor(low, dtype=torch.float32, device=self.device)
+        self._high = torch.as_tensor(high, dtype=torch.float32, device=self.device)
         self._half = (self._high - self._low) / 2
         self._actor_layers = [(m.weight, m.bias) for m in self.actor.net if isinstance(m, nn.Linear)]
         self._target_pairs: list[tuple[list[torch.Tensor], list[torch.Tensor]]] = [
@@ -141,18 +160,19 @@ class TD3(Learner):
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         # The actor's forward pass written out on its parameters: the same operations and numbers as
         # `self.actor(obs)`, without autograd and module-call overhead (acting happens every step).
-        x = torch.from_numpy(np.ascontiguousarray(obs, np.float32))
+        x = torch.from_numpy(np.ascontiguousarray(obs, np.float32)).to(self.device)
         for k, (weight, bias) in enumerate(self._actor_layers):
             x = nn.functional.linear(x, weight, bias)
             x = torch.relu(x) if k < len(self._actor_layers) - 1 else x
-        action = (self.actor.centre + self.actor.scale * torch.tanh(x)).numpy()
+        action = (self.actor.centre + self.actor.scale * torch.tanh(x)).cpu().numpy()
         if explore:
-            noise = self.rng.normal(0.0, self.config.exploration_noise, size=action.shape) * self._half.numpy()
+            half = (self.action_space.high - self.action_space.low) / 2
+            noise = self.rng.normal(0.0, self.config.exploration_noise, size=action.shape) * half
             action = np.clip(action + noise, self.action_space.low, self.action_space.high)
         return action.astype(np.float32)
 
     def policy(self) -> nn.Module:
-        return copy.deepcopy(self.actor).eval().requires_grad_(False)
+        return copy.deepcopy(self.actor).cpu().eval().requires_grad_(False)
 
     def act_macs(self) -> int:
         return linear_macs(self.actor)
@@ -166,7 +186,7 @@ class TD3(Learner):
             return None
         b = self.buffer.sample(cfg.batch_size, self.rng)
         with torch.no_grad(), self._precision():
-            noise = torch.randn(b.action.shape, generator=self.torch_rng) * cfg.policy_noise
+            noise = torch.randn(b.action.shape, generator=self.torch_rng, device=self.device) * cfg.policy_noise
             noise = noise.clamp(-cfg.noise_clip, cfg.noise_clip)
             next_action = (self.actor_target(b.next_obs) + noise * self._half).clamp(self._low, self._high)
             q1_next, q2_next = self.critic_target(b.next_obs, next_action)
@@ -197,7 +217,7 @@ class TD3(Learner):
 
     def _precision(self) -> torch.autocast:
         """The precision of the update's matrix products (see TD3Config.precision)."""
-        return torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.config.precision == "bfloat16")
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.precision == "bfloat16")
 
     def state_dict(self) -> dict[str, Any]:
         return {
