@@ -201,8 +201,12 @@ def _eval(args: argparse.Namespace) -> int:
     if args.video:
         from layered.video import write_videos
 
-        for path, ret in write_videos(run.recipe, run.learners, run.active, run.eval_dir, args.episodes or 1, run.seed,
-                                      args.threshold):
+        try:
+            videos = write_videos(run.recipe, run.learners, run.active, run.eval_dir, args.episodes or 1, run.seed,
+                                  args.threshold)
+        except ValueError as e:
+            return _fail(f"--video: {e}")
+        for path, ret in videos:
             print(f"video: {path} (return {ret:.1f})")
     if args.gallery is not None:
         png, acted, shown = gallery(run, args.gallery)

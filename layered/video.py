@@ -120,6 +120,9 @@ def write_videos(recipe: Recipe, learners: Mapping[str, Learner], active: list[s
     """One MP4 per evaluation episode (seeded as `layered eval` seeds them), with each episode's return."""
     env = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, record=True,
                        render_mode="rgb_array")
+    if np.ndim(env.render()) != 3:
+        env.close()
+        raise ValueError(f"{recipe.env.id} renders no rgb_array frames, so no video can be made of it")
     low, high = env.stack.low, env.stack.high
     fps = int(env.base.metadata.get("render_fps") or 30)
     written = []
