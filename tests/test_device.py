@@ -19,7 +19,7 @@ def test_auto_is_cuda_where_there_is_one_and_cpu_elsewhere():
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
 def test_cuda_without_a_gpu_is_refused_by_the_recipe():
-    with pytest.raises(RecipeError, match="learner.device: .*no CUDA GPU"):
+    with pytest.raises(RecipeError, match=r"learner\.device: .*no CUDA GPU"):
         load_recipe("recipes/pendulum/tla-c.toml", ["learner.device=cuda"])
 
 
