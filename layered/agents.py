@@ -27,8 +27,8 @@ class Watcher(Protocol):
     def wants(self, step: int) -> bool:
         """Whether to render the state before base step `step` of the episode."""
 
-    def __call__(self, frame: np.ndarray, record: StepRecord) -> None:
-        """The state rendered before a base step, and what was executed from it."""
+    def __call__(self, step: int, frame: np.ndarray, record: StepRecord) -> None:
+        """Base step `step`: the state rendered before it, and what was executed from it."""
 
 
 class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
@@ -140,11 +140,11 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         if self.record or frame is not None:
             # copies: the stack reuses its held arrays, and an env may reuse its observation's
             parts = {self.stack.layers[i].name: c.copy() for i, c in composition.contributions.items()}
-            step = StepRecord(composition.action, float(reward), tuple(self._decided), parts, np.array(obs))
+            executed = StepRecord(composition.action, float(reward), tuple(self._decided), parts, np.array(obs))
             if self.record:
-                self.trace.append(step)
+                self.trace.append(executed)
             if frame is not None and self.watcher is not None:
-                self.watcher(frame, step)
+                self.watcher(self.episode_steps, frame, executed)
         self.episode_return += float(reward)
         self.episode_steps += 1
         self._decided = []

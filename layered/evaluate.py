@@ -71,14 +71,12 @@ class _Shots:
 
     steps: set[int]
     taken: list[Shot] = field(default_factory=list)
-    step: int = 0  # the step whose frame comes next
 
     def wants(self, step: int) -> bool:
-        self.step = step
         return step in self.steps
 
-    def __call__(self, frame: np.ndarray, record: StepRecord) -> None:
-        self.taken.append((self.step, frame, record))
+    def __call__(self, step: int, frame: np.ndarray, record: StepRecord) -> None:
+        self.taken.append((step, frame, record))
 
 
 def states_where_layer_acts(

@@ -43,32 +43,30 @@ class StripVideo:
         self.writer = imageio.get_writer(path, fps=fps, codec="libx264", quality=7, macro_block_size=1,
                                          ffmpeg_log_level="error")
         self.history: deque[tuple[tuple[str, ...], tuple[str, ...], np.ndarray]] = deque(maxlen=WINDOW)
-        self.step = 0
         self.font = ImageFont.load_default(size=12)
 
     def wants(self, step: int) -> bool:
-        self.step = step
         return True
 
-    def __call__(self, frame: np.ndarray, record: StepRecord) -> None:
+    def __call__(self, step: int, frame: np.ndarray, record: StepRecord) -> None:
         self.history.append((record.acted, record.decided, record.action))  # (acted, decided, action)
         image = Image.fromarray(np.ascontiguousarray(frame[..., :3]))
         if image.width < MIN_WIDTH:
             image = image.resize((MIN_WIDTH, round(image.height * MIN_WIDTH / image.width)), Image.Resampling.NEAREST)
-        strip = self._strip(image.width)
+        strip = self._strip(step, image.width)
         canvas = Image.new("RGB", (image.width, image.height + strip.height), WHITE)
         canvas.paste(image, (0, 0))
         canvas.paste(strip, (0, image.height))
         even = canvas.crop((0, 0, canvas.width - canvas.width % 2, canvas.height - canvas.height % 2))
         self.writer.append_data(np.asarray(even))
 
-    def _strip(self, width: int) -> Image.Image:
+    def _strip(self, step: int, width: int) -> Image.Image:
         height = HEADER + ROW * len(self.layers) + ACTION_ROW
         strip = Image.new("RGB", (width, height), WHITE)
         draw = ImageDraw.Draw(strip)
         executed = self.history[-1][2]
         action = " ".join(f"{a:+.2f}" for a in executed[:4]) + (" ..." if len(executed) > 4 else "")
-        draw.text((4, 3), f"step {self.step}   action {action}", fill=INK, font=self.font)
+        draw.text((4, 3), f"step {step}   action {action}", fill=INK, font=self.font)
         self._legend(draw, width)
         cell = (width - LABEL_WIDTH - 4) / WINDOW
         x0 = width - 4 - cell * len(self.history)  # the oldest step shown

@@ -60,3 +60,15 @@ def test_summarise_means_returns_and_pools_activity_over_steps():
     assert s.compute == pytest.approx((7 + 28) / 2) and s.jerk == 0.0
     assert s.decided == {"x": pytest.approx(5 / 6)} and s.acted == {"x": pytest.approx(2 / 6)}
     assert s.contribution == {"x": pytest.approx(2 * 0.5 / 6)}
+
+
+def test_distinct_states_spread_by_farthest_point_from_the_first():
+    from layered.evaluate import distinct_states
+
+    # on a line: 0 first, then the farthest (10), then the one farthest from both (5 beats 4 and 6)
+    points = [np.array([x], np.float32) for x in (0, 1, 4, 5, 6, 10)]
+    assert distinct_states(points, 3) == [0, 3, 5]
+    assert distinct_states(points, 99) == [0, 1, 2, 3, 4, 5]
+    # repeated states are not shown twice, and nothing comes of nothing
+    assert distinct_states([np.zeros(2), np.zeros(2), np.ones(2)], 3) == [0, 2]
+    assert distinct_states([], 8) == []
