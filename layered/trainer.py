@@ -91,13 +91,16 @@ def checkpoint_interval(recipe: Recipe) -> int:
     return recipe.train.checkpoint_every or recipe.eval.every
 
 
-def build_learners(recipe: Recipe) -> dict[str, Learner]:
-    """One new learner per layer, each with its own seed, on the spaces of the whole stack."""
+def build_learners(recipe: Recipe, device: str | None = None) -> dict[str, Learner]:
+    """One new learner per layer, each with its own seed, on the spaces of the whole stack;
+    `device` replaces the recipe's `device` setting of the learners that have one."""
     torch.manual_seed(recipe.train.seed)
     env = make_aec_env(recipe)
     learners = {}
     for i, layer in enumerate(recipe.layers):
         config = recipe.learner_config(i)
+        if device is not None and "device" in type(config).model_fields:
+            config = config.model_copy(update={"device": device})
         space = env.action_space(layer.name)
         layout = output_layout(recipe, i, env.stack.action_dim)
         seed = recipe.train.seed * 1000 + i
@@ -108,8 +111,9 @@ def build_learners(recipe: Recipe) -> dict[str, Learner]:
 
 def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None) -> dict[str, Learner]:
     """The learners of a finished run, restored from its checkpoints: each layer's `final` or `best`
-    weights of the last phase it learned in (default: the recipe's `train.select`)."""
-    learners = build_learners(recipe)
+    weights of the last phase it learned in (default: the recipe's `train.select`). They act on the
+    CPU, fastest for one observation at a time, so a run trained on a GPU evaluates anywhere."""
+    learners = build_learners(recipe, device="cpu")
     suffix = {"final": ".pt", "best": ".best.pt"}[weights or recipe.train.select]
     for name, learner in learners.items():
         learner.load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}{suffix}", name))
@@ -147,6 +151,10 @@ def train(
     out = Path(out_dir)
     for warning in warmup_warnings(recipe, max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
+    wants_cuda = any(recipe.learner_config(i).model_dump().get("device") == "cuda" for i in range(len(recipe.layers)))
+    if wants_cuda and not torch.cuda.is_available():
+        raise RecipeError("recipe", [("learner.device", "'cuda' asked for, but torch sees no CUDA GPU here "
+                                      "(use 'cpu' or 'auto')")])
     if recipe.log.tensorboard and not events_available():
         raise RecipeError("recipe", [("log.tensorboard", "needs the extra layered[tensorboard]: "
                                       "pip install 'layered[tensorboard]'")])

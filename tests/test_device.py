@@ -18,9 +18,25 @@ def test_auto_is_cuda_where_there_is_one_and_cpu_elsewhere():
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
-def test_cuda_without_a_gpu_is_refused_by_the_recipe():
+def test_cuda_without_a_gpu_is_refused_before_anything_is_written(tmp_path):
+    recipe = load_recipe("recipes/pendulum/tla-c.toml", ["learner.device=cuda"])  # a recipe may name it
     with pytest.raises(RecipeError, match=r"learner\.device: .*no CUDA GPU"):
-        load_recipe("recipes/pendulum/tla-c.toml", ["learner.device=cuda"])
+        train(recipe, tmp_path / "run", max_steps=100, progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_run_trained_for_a_gpu_evaluates_on_the_cpu(tmp_path, tiny):
+    """A run directory whose recipe names cuda loads its learners on the CPU, here as on a laptop."""
+    from layered.trainer import load_learners
+
+    recipe = load_recipe("recipes/pendulum/tla-c.toml", tiny)
+    train(recipe, tmp_path, max_steps=200, progress=False)
+    text = (tmp_path / "recipe.toml").read_text().replace('device = "cpu"', 'device = "cuda"')
+    assert text.count('device = "cuda"') == 2  # each layer's learner table, as resolved
+    (tmp_path / "recipe.toml").write_text(text)
+    gpu_recipe = load_recipe(tmp_path / "recipe.toml")
+    learners = load_learners(gpu_recipe, tmp_path)
+    assert all(getattr(lr, "td3", lr).device.type == "cpu" for lr in learners.values())
 
 
 @CUDA

@@ -9,7 +9,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 import torch
 from gymnasium.spaces import Box
-from pydantic import Field, field_validator
+from pydantic import Field
 from torch import nn
 
 from layered.buffer import ReplayBuffer, Transition
@@ -48,12 +48,6 @@ class TD3Config(LearnerConfig):
     precision: Literal["float32", "bfloat16"] = "float32"
     """Precision of the updates' matrix products; `bfloat16` (autocast, weights and optimiser
     kept in float32) is about a third faster on CPUs with AVX-512 BF16 or AMX. Acting is float32."""
-
-    @field_validator("device")
-    @classmethod
-    def _device_exists(cls, value: str) -> str:
-        resolve_device(value)
-        return value
 
 
 def resolve_device(name: str) -> torch.device:
