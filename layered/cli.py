@@ -292,13 +292,12 @@ def _report(args: argparse.Namespace) -> int:
     except FileNotFoundError as e:
         return _fail(str(e))
     if not args.no_extra_evals:
-        from layered.run_evals import missing_figure_evals, run_missing_figure_evals
+        from layered.run_evals import missing_figure_evals, run_figure_evals
 
-        todo = [r.path for r in runs if missing_figure_evals(r.path)]
-        for k, path in enumerate(todo):
-            print(f"[{k + 1}/{len(todo)}] {path}: evaluating {' and '.join(missing_figure_evals(path))}",
-                  file=sys.stderr)
-            run_missing_figure_evals(path)
+        todo = [(r.path, missing) for r in runs if (missing := missing_figure_evals(r.path))]
+        for k, (path, missing) in enumerate(todo):
+            print(f"[{k + 1}/{len(todo)}] {path}: evaluating {' and '.join(missing)}", file=sys.stderr)
+            run_figure_evals(path, missing)
     setups = group(runs)
     out = args.out or Path("runs") / f"report-{time.strftime('%Y%m%d-%H%M%S')}"
     print(write_report(setups, out))

@@ -90,13 +90,10 @@ def missing_figure_evals(run_dir: Path) -> list[str]:
     return missing
 
 
-def run_missing_figure_evals(run_dir: Path) -> list[str]:
-    """Run what `missing_figure_evals` names for this run; what was run."""
-    missing = missing_figure_evals(run_dir)
-    if missing:
-        run = open_run(run_dir)
-        if "threshold sweep" in missing:
-            threshold_sweep(run, DEFAULT_SWEEP)
-        if "gallery" in missing:
-            gallery(run, run.active[-1])
-    return missing
+def run_figure_evals(run_dir: Path, missing: list[str]) -> None:
+    """Run the evaluations `missing_figure_evals` named for this run."""
+    run = open_run(run_dir)
+    if "threshold sweep" in missing:
+        threshold_sweep(run, DEFAULT_SWEEP)
+    if "gallery" in missing:
+        gallery(run, run.active[-1])
