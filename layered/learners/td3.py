@@ -137,6 +137,7 @@ class TD3(Learner):
         self._low = torch.as_tensor(low, dtype=torch.float32, device=self.device)
         self._high = torch.as_tensor(high, dtype=torch.float32, device=self.device)
         self._half = (self._high - self._low) / 2
+        self._half_host = (action_space.high - action_space.low) / 2  # the exploration noise's scale, on the host
         self._actor_layers = [(m.weight, m.bias) for m in self.actor.net if isinstance(m, nn.Linear)]
         self._target_pairs: list[tuple[list[torch.Tensor], list[torch.Tensor]]] = [
             (list(target.parameters()), list(net.parameters()))
@@ -160,8 +161,7 @@ class TD3(Learner):
             x = torch.relu(x) if k < len(self._actor_layers) - 1 else x
         action = (self.actor.centre + self.actor.scale * torch.tanh(x)).cpu().numpy()
         if explore:
-            half = (self.action_space.high - self.action_space.low) / 2
-            noise = self.rng.normal(0.0, self.config.exploration_noise, size=action.shape) * half
+            noise = self.rng.normal(0.0, self.config.exploration_noise, size=action.shape) * self._half_host
             action = np.clip(action + noise, self.action_space.low, self.action_space.high)
         return action.astype(np.float32)
 
