@@ -41,7 +41,7 @@ def stack_spec(recipe: Recipe, stack: Stack, backend: str) -> dict[str, Any]:
         if kind not in (None, "residual-clip", "gate"):
             raise ExportError(f"layer {layer.name!r} merges through the combiner {kind!r}; the exported runtime "
                               "knows the built-in combiners residual-clip and gate only")
-        threshold = None if layer.combiner is None or layer.combiner.threshold is None else layer.combiner.threshold
+        threshold = layer.combiner.threshold if layer.combiner is not None else None
         layers.append({
             "name": layer.name, "period": layer.period, "delay": layer.delay, "sees": list(layer.sees),
             "combiner": kind, "per_dimension": recipe.combine.per_dimension,
