@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from layered.combiners import COMBINERS
 from layered.envs import env_info, env_spaces
 from layered.learners import LEARNERS, LearnerConfig
-from layered.orders import ORDERS
+from layered.orders import MAKE_OWN_PHASES, ORDERS
 from layered.stack import output_layout, reward_per_step
 
 
@@ -96,6 +96,10 @@ class LayerConfig(Section):
     nearest deferring gate at or above this layer| / max action (j)."""
     warmup: int | None = Field(default=None, ge=0)
     """Decisions this layer takes uniformly at random before it learns; default `train.warmup`."""
+    weights: str | None = None
+    """A checkpoint the layer starts from instead of new networks: another run's
+    `checkpoints/<name>.best.pt` or `<name>.pt` (a path relative to the recipe file that sets it).
+    The run keeps a copy, so a layer that only acts here needs no phase of its own."""
     learner: dict[str, Any] = {}
     """Learner settings for this layer, over the recipe's `[learner]` table."""
 
@@ -300,6 +304,9 @@ def _check_training(recipe: Recipe) -> list[tuple[str, str]]:
         problems.append(("train.order", f"unknown order {recipe.train.order!r}; known: {', '.join(ORDERS)}"))
     elif recipe.train.order == "explicit" and not recipe.train.phases:
         problems.append(("train.phases", "the explicit order needs at least one [[train.phases]]"))
+    elif recipe.train.phases and recipe.train.order in MAKE_OWN_PHASES:
+        problems.append(("train.phases", f"the {recipe.train.order!r} order makes its own phases and would ignore "
+                         "these; set train.order = \"explicit\" to use them"))
     for p, phase in enumerate(recipe.train.phases or []):
         for field in ("learn", "active"):
             problems += [(f"train.phases[{p}].{field}", f"no layer named {name!r}; layers: {', '.join(names)}")
@@ -379,6 +386,7 @@ def load_recipe(source: str | Path | Mapping[str, Any], overrides: Iterable[str]
     overrides = list(overrides)
     for override in overrides:
         apply_override(data, override)
+    _absolute_weights(data, Path.cwd())  # paths given on the command line are relative to where it runs
     if overrides:
         label += " (with command-line overrides)"
     try:
@@ -441,6 +449,7 @@ def read_recipe_file(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]
         raise RecipeError(str(path), [("", f"cannot be read: {e.strerror or e}")]) from None
     except tomllib.TOMLDecodeError as e:
         raise RecipeError(str(path), [("", f"not valid TOML: {e}")]) from None
+    _absolute_weights(data, path.parent)
     base = data.pop("extends", None)
     if base is None:
         return data
@@ -450,6 +459,15 @@ def read_recipe_file(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]
     if base_path in _seen:
         raise RecipeError(str(path), [("extends", f"{base} extends itself through {', '.join(map(str, _seen))}")])
     return _merge(read_recipe_file(base_path, (*_seen, path.resolve())), data)
+
+
+def _absolute_weights(data: dict[str, Any], base: Path) -> None:
+    """Make each layer's `weights` path absolute, relative ones taken from `base`, so that a run's
+    saved recipe names the same files wherever it is resumed from."""
+    layers = data.get("layers")
+    for layer in layers if isinstance(layers, list) else []:
+        if isinstance(layer, dict) and isinstance(layer.get("weights"), str):
+            layer["weights"] = str((base / layer["weights"]).resolve())
 
 
 def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:

@@ -21,7 +21,7 @@ import tomli_w
 import torch
 
 from layered.agents import LayeredEnv, make_aec_env
-from layered.checkpoint import load_checkpoint, save_checkpoint, write_atomically
+from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, write_atomically
 from layered.evaluate import evaluate
 from layered.interrupt import StopRequest, Stopped
 from layered.learners import LEARNERS, Learner, UpdateStats
@@ -33,7 +33,7 @@ from layered.orders import ORDERS, Phase
 from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.report import plot_curves, results_table
-from layered.rundir import RunDirError, RunInfo, prepare_run_dir, read_run_info
+from layered.rundir import RunDirError, RunInfo, has_progress, prepare_run_dir, read_run_info
 from layered.runstate import LoopState, load_run, save_run
 from layered.stack import output_layout
 
@@ -120,6 +120,33 @@ def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None) -> 
     return learners
 
 
+def start_from_weights(recipe: Recipe, learners: dict[str, Learner]) -> None:
+    """Load each layer's `weights` checkpoint into its learner; a file that is missing, unreadable,
+    of another layer or of other network sizes is refused, naming the layer."""
+    problems = []
+    for i, layer in enumerate(recipe.layers):
+        if layer.weights is None:
+            continue
+        try:
+            learners[layer.name].load_state_dict(load_checkpoint(Path(layer.weights), layer.name))
+        except CheckpointError as e:
+            problems.append((f"layers[{i}].weights", str(e)))
+        except (RuntimeError, KeyError, ValueError) as e:
+            problems.append((f"layers[{i}].weights", f"{layer.weights}: does not fit layer {layer.name!r}'s "
+                             f"learner ({str(e).strip().splitlines()[0]})"))
+    if problems:
+        raise RecipeError("recipe", problems)
+
+
+def keep_start_weights(recipe: Recipe, learners: dict[str, Learner], folder: Path) -> None:
+    """Copy the start weights into the run's checkpoints as the layer's final and best, so that the
+    run evaluates without the original file (a phase that trains the layer replaces them)."""
+    for layer in recipe.layers:
+        if layer.weights is not None:
+            for suffix in (".pt", ".best.pt"):
+                save_checkpoint(folder / f"{layer.name}{suffix}", layer.name, learners[layer.name].state_dict())
+
+
 def warmup_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
     """Phases too short for a learning layer to finish its random warm-up, so that it never learns."""
     out = []
@@ -159,8 +186,10 @@ def train(
         raise RecipeError("recipe", [("log.tensorboard", "needs the extra layered[tensorboard]: "
                                       "pip install 'layered[tensorboard]'")])
     info = RunInfo(label or out.name, max_steps, tuple(plugins))
-    prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # first, so that a run killed early resumes
     learners = build_learners(recipe)
+    if not (resume and has_progress(out)):
+        start_from_weights(recipe, learners)  # a bad `weights` file is refused before anything is written
+    prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # first written, so that a run killed early resumes
     checkpoint = out / "checkpoints" / "run.pt"
     state = load_run(checkpoint, learners, resolved(recipe), max_steps)
     resumed_at = None if state is None else (state.phase, state.step)
@@ -169,6 +198,7 @@ def train(
               EventLog(out / "tensorboard", resumed_at) if recipe.log.tensorboard else None)
     if state is None:
         state = LoopState()
+        keep_start_weights(recipe, learners, checkpoint.parent)
         run.metrics.start()
         run.episodes.start()
     else:

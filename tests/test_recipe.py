@@ -55,6 +55,8 @@ def test_td3_defaults_are_the_papers():
         ({"learner": {"kind": "td3", "lr": "fast"}}, "learner.lr", "valid number"),
         ({"learner": {"kind": "ppo"}}, "learner.kind", "unknown learner 'ppo'"),
         ({"train": {"phases": [{"learn": ["medium"]}]}}, "train.phases[0].learn", "no layer named 'medium'"),
+        ({"train": {"order": "fast-to-slow", "phases": [{"learn": ["slow"]}]}}, "train.phases",
+         "the 'fast-to-slow' order makes its own phases and would ignore these"),
     ],
 )
 def test_bad_values_are_one_line_naming_the_key(change, key, says):

@@ -143,3 +143,16 @@ def test_target_networks_keep_no_autograd_history():
     for net in (learner.actor_target, learner.critic_target):
         for p in net.parameters():
             assert not p.requires_grad and p.grad_fn is None and p.is_leaf
+
+
+def test_a_zero_output_actor_starts_at_the_middle_of_its_range_and_then_learns():
+    learner = TD3(OBS, ACT, OutputLayout(2), CONFIG.model_copy(update={"zero_output": True}), 0)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        assert np.array_equal(learner.act(rng.uniform(-1, 1, 3).astype(np.float32), False), [0.0, 0.5])
+    for _ in range(64):
+        o = rng.uniform(-1, 1, 3).astype(np.float32)
+        learner.observe(Transition(o, learner.random_action(), float(rng.normal()), o, False, 0.99))
+    for _ in range(4):
+        learner.update()
+    assert not np.array_equal(learner.act(np.ones(3, np.float32), False), [0.0, 0.5])

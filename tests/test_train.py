@@ -154,3 +154,37 @@ def test_each_phase_keeps_final_and_best_weights_reports_both_fresh_and_hands_on
     assert all(torch.equal(chosen[k], handed_on["policy"]["actor"][k]) for k in chosen)
     if rows[0]["best_step"] != rows[0]["steps"]:  # the best was not the last evaluation: the two differ
         assert not all(torch.equal(slow["slow.pt"][k], slow["slow.best.pt"][k]) for k in chosen)
+
+
+def test_a_layer_starts_from_another_runs_weights_and_the_run_keeps_a_copy(tmp_path):
+    import torch
+
+    from layered.recipe import RecipeError
+    from layered.trainer import load_learners
+
+    train(load_recipe(PENDULUM / "tla-c.toml", TINY), tmp_path / "a", max_steps=300, progress=False)
+    source = torch.load(tmp_path / "a" / "checkpoints" / "slow.best.pt", weights_only=True)["state"]["actor"]
+    recipe_file = tmp_path / "recipes" / "fast-on-a.toml"  # `weights` is relative to the file that sets it
+    recipe_file.parent.mkdir()
+    recipe_file.write_text(f'extends = "{PENDULUM / "tla-c.toml"}"\n'
+                           '[[layers]]\nname = "slow"\nperiod = 4\nweights = "../a/checkpoints/slow.best.pt"\n'
+                           '[[layers]]\nname = "fast"\nperiod = 1\nsees = ["obs", "slow"]\naction_scale = 2.0\n'
+                           'action_penalty = 1.0\n'
+                           '[train]\norder = "explicit"\nphases = [{ learn = ["fast"], active = ["slow", "fast"] }]\n')
+    recipe = load_recipe(recipe_file, TINY)
+    assert recipe.layers[0].weights == str(tmp_path / "a" / "checkpoints" / "slow.best.pt")
+    train(recipe, tmp_path / "b", max_steps=300, progress=False)
+    check_run(tmp_path / "b", phases=1, layers=["slow", "fast"])
+    (tmp_path / "a" / "checkpoints" / "slow.best.pt").unlink()  # the run evaluates from its own copy
+    learners = load_learners(load_recipe(tmp_path / "b" / "recipe.toml"), tmp_path / "b")
+    assert all(torch.equal(learners["slow"].actor.state_dict()[k], source[k]) for k in source)
+
+    for weights, message in [("missing.pt", "no checkpoint for layer 'slow'"),
+                             (tmp_path / "a" / "checkpoints" / "fast.pt", "not a checkpoint of 'slow'")]:
+        with pytest.raises(RecipeError, match=rf"layers\[0\]\.weights: .*{message}"):
+            train(load_recipe(recipe_file, [*TINY, f"layers.slow.weights={weights}"]), tmp_path / "c", progress=False)
+    with pytest.raises(RecipeError, match=r"layers\[0\]\.weights: .*does not fit layer 'slow'"):
+        train(load_recipe(recipe_file, [*TINY, "learner.hidden=[16, 16]",
+                                        f"layers.slow.weights={tmp_path / 'a' / 'checkpoints' / 'slow.pt'}"]),
+              tmp_path / "c", progress=False)
+    assert not (tmp_path / "c").exists()  # refused before anything was written

@@ -45,6 +45,9 @@ class TD3Config(LearnerConfig):
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     """Where networks, replay buffer and updates live: `cuda` (a GPU), `cpu`, or `auto` (cuda where
     one is available). Exact resumes and the suite's checks are promised on CPU."""
+    zero_output: bool = False
+    """Start the actor's last layer at zero, so that it outputs the middle of its range until it
+    learns: a residual layer then starts by adding nothing to the layers above it."""
     precision: Literal["float32", "bfloat16"] = "float32"
     """Precision of the updates' matrix products; `bfloat16` (autocast, weights and optimiser
     kept in float32) is about a third faster on CPUs with AVX-512 BF16 or AMX. Acting is float32."""
@@ -127,6 +130,9 @@ class TD3(Learner):
         obs_dim, act_dim = obs_space.shape[0], action_space.shape[0]
         low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
         self.actor = Actor(obs_dim, low, high, config.hidden).to(self.device)
+        if config.zero_output:
+            nn.init.zeros_(self.actor.net[-1].weight)
+            nn.init.zeros_(self.actor.net[-1].bias)
         self.critic = TwinCritic(obs_dim, act_dim, config.hidden).to(self.device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
