@@ -189,7 +189,7 @@ def train(
     learners = build_learners(recipe)
     if not (resume and has_progress(out)):
         start_from_weights(recipe, learners)  # a bad `weights` file is refused before anything is written
-    prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # first written, so that a run killed early resumes
+    prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # so that a run killed early resumes
     checkpoint = out / "checkpoints" / "run.pt"
     state = load_run(checkpoint, learners, resolved(recipe), max_steps)
     resumed_at = None if state is None else (state.phase, state.step)
