@@ -131,8 +131,10 @@ class TD3(Learner):
         low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
         self.actor = Actor(obs_dim, low, high, config.hidden).to(self.device)
         if config.zero_output:
-            nn.init.zeros_(self.actor.net[-1].weight)
-            nn.init.zeros_(self.actor.net[-1].bias)
+            last = self.actor.net[-1]
+            assert isinstance(last, nn.Linear)
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
         self.critic = TwinCritic(obs_dim, act_dim, config.hidden).to(self.device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
