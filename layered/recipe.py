@@ -222,6 +222,8 @@ def _describe(error: Mapping[str, Any]) -> str:
         return "unknown key"
     if kind == "missing":
         return "required key is missing"
+    if kind == "value_error":  # a check across fields: its own words say what is wrong
+        return str(error["ctx"]["error"])
     given = error.get("input")
     return f"{msg[0].lower()}{msg[1:]} (got {given!r})" if not isinstance(given, dict) else msg
 
@@ -322,7 +324,7 @@ def _check_learner(table: dict[str, Any]) -> list[tuple[str, str]]:
     try:
         LEARNERS.get(kind).Config.model_validate({**table, "kind": kind})
     except ValidationError as e:
-        return [("." + _key(err["loc"]), _describe(err)) for err in e.errors()]
+        return [(f".{_key(err['loc'])}" if err["loc"] else "", _describe(err)) for err in e.errors()]
     return []
 
 

@@ -178,10 +178,14 @@ def train(
     out = Path(out_dir)
     for warning in warmup_warnings(recipe, max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
-    wants_cuda = any(recipe.learner_config(i).model_dump().get("device") == "cuda" for i in range(len(recipe.layers)))
-    if wants_cuda and not torch.cuda.is_available():
-        raise RecipeError("recipe", [("learner.device", "'cuda' asked for, but torch sees no CUDA GPU here "
-                                      "(use 'cpu' or 'auto')")])
+    settings = [recipe.learner_config(i).model_dump() for i in range(len(recipe.layers))]
+    if not torch.cuda.is_available():
+        if any(c.get("device") == "cuda" for c in settings):
+            raise RecipeError("recipe", [("learner.device", "'cuda' asked for, but torch sees no CUDA GPU here "
+                                          "(use 'cpu' or 'auto')")])
+        if any(c.get("compile") == "cudagraphs" for c in settings):
+            raise RecipeError("recipe", [("learner.compile", "'cudagraphs' asked for, but torch sees no CUDA GPU "
+                                          "here (use 'inductor' or 'off')")])
     if recipe.log.tensorboard and not events_available():
         raise RecipeError("recipe", [("log.tensorboard", "needs the extra layered[tensorboard]: "
                                       "pip install 'layered[tensorboard]'")])

@@ -58,3 +58,19 @@ def test_cuda_run_resumes_to_the_same_files(tiny, tmp_path, monkeypatch):
     train_until_stopped(monkeypatch, recipe, tmp_path / "stopped", episodes=2, max_steps=400, progress=False)
     resume(tmp_path / "stopped", max_steps=400, progress=False)
     assert_same_run(tmp_path / "whole", tmp_path / "stopped")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+def test_cuda_graphs_without_a_gpu_are_refused_before_anything_is_written(tmp_path):
+    recipe = load_recipe("recipes/pendulum/tla-c.toml", ["learner.device=auto", "learner.compile=cudagraphs"])
+    with pytest.raises(RecipeError, match=r"learner\.compile: 'cudagraphs' asked for, but .*no CUDA GPU"):
+        train(recipe, tmp_path / "run", max_steps=100, progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+@CUDA
+@pytest.mark.parametrize("mode", ["inductor", "cudagraphs"])
+def test_compiled_cuda_learners_train(mode, tiny, tmp_path):
+    recipe = load_recipe("recipes/pendulum/tla-c.toml", [*tiny, "learner.device=cuda", f"learner.compile={mode}"])
+    train(recipe, tmp_path, max_steps=300, progress=False)
+    assert (tmp_path / "results.json").exists()

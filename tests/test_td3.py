@@ -15,8 +15,8 @@ ACT = Box(np.array([-2.0, 0.0], np.float32), np.array([2.0, 1.0], np.float32))
 CONFIG = TD3Config(hidden=(32, 32), batch_size=16)
 
 
-def filled(seed, n=64):
-    learner = TD3(OBS, ACT, OutputLayout(2), CONFIG, seed)
+def filled(seed, n=64, config=CONFIG):
+    learner = TD3(OBS, ACT, OutputLayout(2), config, seed)
     rng = np.random.default_rng(0)
     for _ in range(n):
         o = rng.uniform(-1, 1, 3).astype(np.float32)
@@ -156,3 +156,18 @@ def test_a_zero_output_actor_starts_at_the_middle_of_its_range_and_then_learns()
     for _ in range(4):
         learner.update()
     assert not np.array_equal(learner.act(np.ones(3, np.float32), False), [0.0, 0.5])
+
+
+def test_compiled_steps_give_the_eager_updates():
+    eager, inductor = filled(5), filled(5, config=CONFIG.model_copy(update={"compile": "inductor"}))
+    for _ in range(4):
+        a, b = eager.update(), inductor.update()
+        assert a.critic_loss == pytest.approx(b.critic_loss, rel=1e-5)
+        assert (a.actor_loss is None) == (b.actor_loss is None)
+    obs = np.full(3, 0.2, np.float32)
+    assert np.allclose(eager.act(obs, False), inductor.act(obs, False), atol=1e-5)
+
+
+def test_cuda_graphs_need_a_gpu_device():
+    with pytest.raises(ValueError, match="compile = 'cudagraphs' needs the learner on a GPU"):
+        TD3Config(compile="cudagraphs", device="cpu")

@@ -1,0 +1,136 @@
+"""TD3 training speed of `layered` on a GPU: eager, compiled and CUDA graphs, and seeds sharing it.
+
+Two parts, each printing a markdown table:
+
+* **modes**: one seed of TD3 (400-300 networks, batch 256) on Pendulum-v1 with `learner.compile`
+  off (eager), `inductor` and `cudagraphs`, each its own process. Steps/s are counted over the
+  updates after the first `--settle` (compilation and CUDA-graph recording happen there; their
+  time is reported apart).
+* **sweep**: `layered sweep --jobs N --device cuda` with N seeds at once, for each N of `--jobs`;
+  per-seed steps/s are read from each run's train.log (the rate between evaluations, the first
+  interval left out), and their sum is the aggregate.
+
+    python benchmarks/gpu.py                                  # both parts, on the GPU
+    python benchmarks/gpu.py --device cpu --modes off,inductor --jobs 1,2 --steps 1500   # a dry run
+
+Runs on CPU with `--device cpu` (without `cudagraphs`) to check the script itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+RECIPE = {
+    "env": {"id": "Pendulum-v1"},
+    "layers": [{"name": "td3", "period": 1}],
+    "learner": {"kind": "td3", "hidden": [400, 300], "batch_size": 256},
+    "eval": {"episodes": 1, "fresh_episodes": 0},
+}
+RATE = re.compile(r"step (\d+)/\d+, eval return .*, (\d+) steps/s")
+
+
+def one_seed(device: str, mode: str, steps: int, warmup: int, settle: int) -> dict[str, Any]:
+    """Train one TD3 seed in this process; update times before and after the first `settle` updates."""
+    import torch
+
+    import layered
+    from layered.learners.td3 import TD3
+
+    torch.set_num_threads(1)  # as `layered sweep` runs each seed
+    stamps: list[float] = []
+    update = TD3.update
+
+    def timed(self: TD3) -> Any:
+        out = update(self)
+        stamps.append(time.perf_counter())
+        return out
+
+    TD3.update = timed  # type: ignore[method-assign]
+    recipe = layered.load_recipe({**RECIPE, "learner": {**RECIPE["learner"], "device": device, "compile": mode},
+                                  "train": {"steps_per_phase": steps, "warmup": warmup},
+                                  "eval": {**RECIPE["eval"], "every": 10 * steps}})
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory() as out:
+        layered.train(recipe, out, progress=False)
+    if len(stamps) <= settle + 1:
+        raise SystemExit(f"only {len(stamps)} updates: raise --steps above the warm-up plus --settle")
+    first = stamps[0] - (stamps[1] - stamps[0])  # the first update's start, near enough
+    return {"mode": mode, "settle_seconds": stamps[settle] - first,
+            "steps_per_second": (len(stamps) - 1 - settle) / (stamps[-1] - stamps[settle]),
+            "wall_seconds": time.perf_counter() - start}
+
+
+def sweep(device: str, jobs: int, steps: int, warmup: int) -> dict[str, Any]:
+    """`layered sweep` with `jobs` seeds at once; per-seed steps/s from each run's train.log."""
+    with tempfile.TemporaryDirectory() as tmp:
+        recipe = Path(tmp) / "td3.toml"
+        recipe.write_text(_toml({**RECIPE, "train": {"steps_per_phase": steps, "warmup": warmup},
+                                 "eval": {**RECIPE["eval"], "every": max(steps // 6, 1)}}))
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "layered.cli", "sweep", str(recipe), "--seeds", str(jobs), "--jobs",
+                        str(jobs), "--device", device, "--out", str(Path(tmp) / "runs")], check=True,
+                       capture_output=True)
+        wall = time.perf_counter() - start
+        rates = []
+        for log in sorted(Path(tmp, "runs").rglob("train.log")):
+            intervals = [int(m.group(2)) for m in RATE.finditer(log.read_text())]
+            rates.append(statistics.median(intervals[1:] or intervals))
+    return {"jobs": jobs, "per_seed": rates, "aggregate": sum(rates), "wall_seconds": wall}
+
+
+def _toml(data: dict[str, Any]) -> str:
+    import tomli_w
+
+    return tomli_w.dumps(data)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", default="cuda", help="cuda (default) or cpu for a dry run")
+    parser.add_argument("--modes", default="off,inductor,cudagraphs", help="learner.compile values to time")
+    parser.add_argument("--jobs", default="1,4,8", help="seeds sharing the device at once, comma-separated")
+    parser.add_argument("--steps", type=int, default=6000, help="environment steps per run (default 6000)")
+    parser.add_argument("--warmup", type=int, default=1000, help="random steps before updates (default 1000)")
+    parser.add_argument("--settle", type=int, default=200, help="updates left out of the rate (default 200)")
+    parser.add_argument("--parts", default="modes,sweep", help="which parts to run (default modes,sweep)")
+    parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        print(json.dumps(one_seed(args.device, args.child[0], args.steps, args.warmup, int(args.child[1]))))
+        return
+    import torch
+
+    where = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {os.cpu_count()} cores"
+    print(f"TD3 on Pendulum-v1, {args.steps} steps per run ({args.warmup} random), torch {torch.__version__}, {where}")
+    if "modes" in args.parts:
+        print("\n| learner.compile | steps/s after settling | first updates (s) | wall s |\n|---|---|---|---|")
+        for mode in args.modes.split(","):
+            proc = subprocess.run([sys.executable, __file__, "--child", mode, str(args.settle), "--device", args.device,
+                                   "--steps", str(args.steps), "--warmup", str(args.warmup)],
+                                  capture_output=True, text=True, check=False)
+            if proc.returncode != 0:
+                print(f"| {mode} | failed: {proc.stderr.strip().splitlines()[-1]} | | |", flush=True)
+                continue
+            row = json.loads(proc.stdout.strip().splitlines()[-1])
+            print(f"| {mode} | {row['steps_per_second']:.1f} | {row['settle_seconds']:.1f} "
+                  f"| {row['wall_seconds']:.1f} |", flush=True)
+    if "sweep" in args.parts:
+        print("\n| seeds at once | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|")
+        for jobs in map(int, args.jobs.split(",")):
+            row = sweep(args.device, jobs, args.steps, args.warmup)
+            seeds = ", ".join(f"{r:.0f}" for r in row["per_seed"])
+            print(f"| {jobs} | {row['aggregate']:.0f} | {seeds} | {row['wall_seconds']:.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
