@@ -210,8 +210,9 @@ class TD3(Learner):
         if len(self.buffer) == 0:
             return None
         b = self.buffer.sample(self.config.batch_size, self.rng)
-        noise = torch.randn(b.action.shape, generator=self.torch_rng, device=self.device)  # outside: compiled
-        critic_loss = self._critic_step(b, noise)  # steps cannot draw from a generator
+        # the smoothing noise is drawn here: a compiled step cannot draw from a generator
+        noise = torch.randn(b.action.shape, generator=self.torch_rng, device=self.device)
+        critic_loss = self._critic_step(b, noise)
         self.updates += 1
         actor_loss = None
         if self.updates % self.config.policy_delay == 0:
