@@ -30,6 +30,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import tomli_w
+
 RECIPE = {
     "env": {"id": "Pendulum-v1"},
     "layers": [{"name": "td3", "period": 1}],
@@ -74,7 +76,7 @@ def sweep(device: str, jobs: int, steps: int, warmup: int) -> dict[str, Any]:
     """`layered sweep` with `jobs` seeds at once; per-seed steps/s from each run's train.log."""
     with tempfile.TemporaryDirectory() as tmp:
         recipe = Path(tmp) / "td3.toml"
-        recipe.write_text(_toml({**RECIPE, "train": {"steps_per_phase": steps, "warmup": warmup},
+        recipe.write_text(tomli_w.dumps({**RECIPE, "train": {"steps_per_phase": steps, "warmup": warmup},
                                  "eval": {**RECIPE["eval"], "every": max(steps // 6, 1)}}))
         start = time.perf_counter()
         subprocess.run([sys.executable, "-m", "layered.cli", "sweep", str(recipe), "--seeds", str(jobs), "--jobs",
@@ -86,12 +88,6 @@ def sweep(device: str, jobs: int, steps: int, warmup: int) -> dict[str, Any]:
             intervals = [int(m.group(2)) for m in RATE.finditer(log.read_text())]
             rates.append(statistics.median(intervals[1:] or intervals))
     return {"jobs": jobs, "per_seed": rates, "aggregate": sum(rates), "wall_seconds": wall}
-
-
-def _toml(data: dict[str, Any]) -> str:
-    import tomli_w
-
-    return tomli_w.dumps(data)
 
 
 def main() -> None:
