@@ -42,36 +42,38 @@ class ReplayBuffer:
         self.size = 0
         self._next = 0
         self.device = torch.device(device)
-        widths = {"obs": obs_dim, "action": action_dim, "reward": 1, "next_obs": obs_dim, "not_done": 1, "discount": 1}
-        # empty, not zeros: rows are read only once written, and untouched pages of a large buffer
-        # then take no memory
-        self._store = {key: torch.empty((capacity, widths[key]), dtype=torch.float32, device=self.device)
-                       for key in self.FIELDS}
+        widths = (obs_dim, action_dim, 1, obs_dim, 1, 1)
+        ends = np.cumsum(widths).tolist()
+        self._columns = {key: slice(end - width, end)
+                         for key, width, end in zip(self.FIELDS, widths, ends, strict=True)}
+        # One row per transition, so that storing one is one copy and a minibatch one gather; empty,
+        # not zeros: rows are read only once written, and untouched pages then take no memory.
+        self._rows = torch.empty((capacity, ends[-1]), dtype=torch.float32, device=self.device)
 
     def add(self, t: Transition) -> None:
         """Store one transition."""
-        row = {"obs": t.obs, "action": t.action, "reward": t.reward, "next_obs": t.next_obs,
-               "not_done": 0.0 if t.terminated else 1.0, "discount": t.discount}
-        for key, value in row.items():
-            self._store[key][self._next] = torch.as_tensor(np.asarray(value, np.float32))
+        row = np.concatenate([np.ravel(t.obs), np.ravel(t.action), [t.reward], np.ravel(t.next_obs),
+                              [0.0 if t.terminated else 1.0, t.discount]], dtype=np.float32)
+        self._rows[self._next] = torch.from_numpy(row)
         self._next = (self._next + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
     def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
         """A uniform minibatch drawn with replacement (indices from `rng`, rows gathered on the device)."""
         idx = torch.from_numpy(rng.integers(0, self.size, size=batch_size)).to(self.device, non_blocking=True)
-        return Batch(*(self._store[key][idx] for key in self.FIELDS))
+        rows = self._rows[idx]
+        return Batch(*(rows[:, self._columns[key]] for key in self.FIELDS))
 
     def __len__(self) -> int:
         return self.size
 
     def state_dict(self) -> dict[str, torch.Tensor | int]:
-        """The stored transitions as tensors, for resuming a run."""
-        stored = {key: self._store[key][: self.size].cpu().clone() for key in self.FIELDS}
+        """The stored transitions, a tensor per field, for resuming a run."""
+        stored = {key: self._rows[: self.size, self._columns[key]].cpu().clone() for key in self.FIELDS}
         return {"size": self.size, "next": self._next, **stored}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what `state_dict` returned."""
         self.size, self._next = int(state["size"]), int(state["next"])
         for key in self.FIELDS:
-            self._store[key][: self.size] = state[key].to(self.device)
+            self._rows[: self.size, self._columns[key]] = state[key].to(self.device)

@@ -16,8 +16,16 @@ from typing import Any
 import torch
 
 from layered.checkpoint import CheckpointError, load_latest, save_checkpoint
-from layered.learners import Learner, UpdateStats
+from layered.learners import Learner, Losses
 from layered.metrics import Evaluation
+
+
+@dataclass(frozen=True)
+class UpdateStats:
+    """One update's losses read back to the host: what the loop averages per evaluation and checkpoints."""
+
+    critic_loss: float
+    actor_loss: float | None
 
 
 @dataclass
@@ -39,7 +47,10 @@ class LoopState:
     curve: list[tuple[int, Evaluation]] = field(default_factory=list)
     """(step, evaluation) of this phase so far."""
     losses: dict[str, list[UpdateStats]] = field(default_factory=dict)
-    """Per learning layer: the statistics of each update since the last evaluation."""
+    """Per learning layer: the losses of each update since the last evaluation, read back."""
+    pending: dict[str, list[Losses]] = field(default_factory=dict, repr=False)
+    """Per learning layer: the losses of updates not yet read back from the learner's device (none
+    at a checkpoint: they are read back first)."""
     rows: list[dict[str, Any]] = field(default_factory=list)
     """The results row of each finished phase, as in results.json."""
     env_rng: dict[str, Any] | None = None
@@ -61,18 +72,19 @@ class LoopState:
         self.next_eval, self.next_checkpoint = eval_every, checkpoint_every
         self.decisions = dict.fromkeys(learn, 0)
         self.losses = {name: [] for name in learn}
+        self.pending = {name: [] for name in learn}
         self.curve, self.best = [], {}
 
     def finish_phase(self, row: dict[str, Any]) -> None:
         """Record the finished phase's results; the next phase has not started."""
         self.rows.append(row)
         self.phase, self.step, self.episode = self.phase + 1, 0, 0
-        self.decisions, self.losses, self.curve, self.best = {}, {}, [], {}
+        self.decisions, self.losses, self.pending, self.curve, self.best = {}, {}, {}, [], {}
 
     def to_json(self) -> str:
         """The state as JSON text (floats round-trip exactly)."""
-        data = asdict(replace(self, best={}))  # the weights are saved as tensors, beside
-        del data["best"]
+        data = asdict(replace(self, best={}, pending={}))  # the weights are saved as tensors, beside
+        del data["best"], data["pending"]
         return json.dumps(data)
 
     @classmethod
@@ -81,7 +93,7 @@ class LoopState:
         data = json.loads(text)
         data["curve"] = [(step, Evaluation(**evaluation)) for step, evaluation in data["curve"]]
         data["losses"] = {name: [UpdateStats(**s) for s in stats] for name, stats in data["losses"].items()}
-        return cls(**data)
+        return cls(**data, pending={name: [] for name in data["losses"]})
 
 
 def recipe_digest(resolved_recipe: dict[str, Any]) -> str:

@@ -24,7 +24,7 @@ from layered.agents import LayeredEnv, make_aec_env
 from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, write_atomically
 from layered.evaluate import evaluate
 from layered.interrupt import StopRequest, Stopped
-from layered.learners import LEARNERS, Learner, UpdateStats
+from layered.learners import LEARNERS, Learner
 from layered.events import EventLog
 from layered.events import available as events_available
 from layered.logs import CsvLog
@@ -34,7 +34,7 @@ from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.report import plot_curves, results_table
 from layered.rundir import RunDirError, RunInfo, has_progress, prepare_run_dir, read_run_info
-from layered.runstate import LoopState, load_run, save_run
+from layered.runstate import LoopState, UpdateStats, load_run, save_run
 from layered.stack import output_layout
 
 EPISODE_FIELDS = ["phase", "step", "return", "length"]
@@ -335,9 +335,8 @@ def _run_episode(run: Run, state: LoopState, phase: Phase, budget: int, env: Lay
         bar.advance(env.advanced)
         if learns:  # update
             state.decisions[name] += 1
-            if state.decisions[name] > warmups[name] and (stats := learner.update()) is not None:
-                _check_finite(np.array([stats.critic_loss, stats.actor_loss or 0.0]), "loss", name, state)
-                state.losses[name].append(stats)
+            if state.decisions[name] > warmups[name] and (losses := learner.update()) is not None:
+                state.pending[name].append(losses)
         if state.step >= state.next_eval:  # log
             _evaluate(run, state, phase, eval_env, bar)
             state.next_eval += recipe.eval.every
@@ -361,6 +360,7 @@ def _end_episode(run: Run, env: LayeredEnv, state: LoopState) -> None:
                             "length": env.episode_steps})
     state.episode += 1
     if state.step >= state.next_checkpoint or run.stop.requested:
+        _read_back_losses(state)
         while state.next_checkpoint <= state.step:
             state.next_checkpoint += checkpoint_interval(run.recipe)
         state.env_rng = dict(env.base.unwrapped.np_random.bit_generator.state)
@@ -373,6 +373,7 @@ def _end_episode(run: Run, env: LayeredEnv, state: LoopState) -> None:
 def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: LayeredEnv, bar: Progress) -> None:
     """Evaluate the present layers now and log the row, with each learning layer's mean losses since the last."""
     recipe = run.recipe
+    _read_back_losses(state)
     result = evaluate(eval_env, run.learners, recipe.eval.episodes, recipe.train.seed + recipe.eval.seed_offset)
     state.curve.append((state.step, result))
     if state.best_index() == len(state.curve) - 1:
@@ -385,6 +386,19 @@ def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: LayeredEnv, ba
     for stats in state.losses.values():
         stats.clear()
     bar.evaluated(state.step, result)
+
+
+def _read_back_losses(state: LoopState) -> None:
+    """Read the losses of each layer's updates since the last read-back off its device in one copy,
+    and stop on a non-finite one before it is logged or checkpointed."""
+    for name, pending in state.pending.items():
+        if not pending:
+            continue
+        values = iter(torch.stack([t for p in pending for t in p if t is not None]).tolist())
+        stats = [UpdateStats(next(values), None if p.actor is None else next(values)) for p in pending]
+        _check_finite(np.array([[s.critic_loss, s.actor_loss or 0.0] for s in stats]), "loss", name, state)
+        state.losses[name] += stats
+        pending.clear()
 
 
 def _check_finite(values: np.ndarray, what: str, layer: str, state: LoopState) -> None:

@@ -89,7 +89,9 @@ def test_no_usable_checkpoint_is_refused_and_nothing_changes(tmp_path, monkeypat
 
 
 def test_divergence_stops_naming_layer_phase_and_step_and_keeps_the_last_checkpoint(tmp_path, monkeypatch):
-    from layered.learners.base import UpdateStats
+    import torch
+
+    from layered.learners import Losses
     from layered.learners.td3 import TD3
 
     recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
@@ -97,11 +99,13 @@ def test_divergence_stops_naming_layer_phase_and_step_and_keeps_the_last_checkpo
 
     def update(self):
         calls.append(1)
-        stats = original(self)
-        return UpdateStats(float("nan"), None) if len(calls) == 400 else stats
+        losses = original(self)
+        return Losses(torch.tensor(float("nan"))) if len(calls) == 400 else losses
 
     monkeypatch.setattr(TD3, "update", update)
-    with pytest.raises(Diverged, match="layer 'fast' met a non-finite loss in phase 1 at step 325"):
+    # The 400th update is at step 325 of phase 1; losses are read back at the next evaluation or
+    # checkpoint, here the episode end at step 400, before anything of that checkpoint is written.
+    with pytest.raises(Diverged, match="layer 'fast' met a non-finite loss in phase 1 at step 400"):
         train(recipe, tmp_path, max_steps=700, progress=False)
     monkeypatch.undo()
     resume(tmp_path, progress=False)  # from the last checkpoint before the divergence

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
+import torch
 from gymnasium.spaces import Box
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
@@ -27,12 +27,12 @@ class LearnerConfig(BaseModel):
     """Discount per decision of the layer (or per base step, see train.discount)."""
 
 
-@dataclass(frozen=True)
-class UpdateStats:
-    """What one gradient update measured; fields are None when that part did not run."""
+class Losses(NamedTuple):
+    """What one gradient update returns: its losses as 0-d tensors on the learner's device. The
+    loop reads them back only when it logs or checkpoints, so that no update waits for the device."""
 
-    critic_loss: float
-    actor_loss: float | None
+    critic: torch.Tensor
+    actor: torch.Tensor | None = None  # None when the actor did not update
 
 
 class Learner(ABC):
@@ -80,8 +80,8 @@ class Learner(ABC):
         """Store a transition for later updates."""
 
     @abstractmethod
-    def update(self) -> UpdateStats | None:
-        """One learning step from stored transitions; None while there is too little data."""
+    def update(self) -> Losses | None:
+        """One learning step from stored transitions, and its losses; None while there is too little data."""
 
     @abstractmethod
     def state_dict(self) -> dict[str, Any]:

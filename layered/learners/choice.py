@@ -13,7 +13,7 @@ from gymnasium.spaces import Box
 from torch import nn
 
 from layered.buffer import ReplayBuffer, Transition
-from layered.learners.base import Learner, UpdateStats
+from layered.learners.base import Learner, Losses
 from layered.learners.td3 import TD3, TD3Config, adam, linear_macs, mlp
 from layered.outputs import OutputLayout
 
@@ -42,10 +42,10 @@ class ChoiceQ:
         """Store that `choice` was made with `transition.action` (without the choice's own output)."""
         self.buffer.add(transition._replace(action=np.append(transition.action, choice), path=()))
 
-    def update(self, batch_size: int, rng: np.random.Generator) -> float | None:
+    def update(self, batch_size: int, rng: np.random.Generator) -> None:
         """One regression of the chosen values on reward + discount x the TD3 target's value."""
         if len(self.buffer) == 0:
-            return None
+            return
         b = self.buffer.sample(batch_size, rng)
         action, choice = b.action[:, :-1], b.action[:, -1:].long()
         with torch.no_grad():
@@ -55,7 +55,6 @@ class ChoiceQ:
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
-        return loss.item()
 
     def macs(self) -> int:
         return linear_macs(self.net)
@@ -123,11 +122,11 @@ class TD3WithChoice(Learner):
     def act_macs(self) -> int:
         return self.td3.act_macs() + self.choice.macs()
 
-    def update(self) -> UpdateStats | None:
-        stats = self.td3.update()
-        if stats is not None:
+    def update(self) -> Losses | None:
+        losses = self.td3.update()
+        if losses is not None:
             self.choice.update(self.td3.config.batch_size, self.rng)
-        return stats
+        return losses
 
     def state_dict(self) -> dict[str, Any]:
         return {"td3": self.td3.state_dict(), "choice": self.choice.state_dict()}

@@ -15,7 +15,7 @@ from torch import nn
 from torch.func import functional_call
 
 from layered.buffer import Batch, ReplayBuffer, Transition
-from layered.learners.base import LEARNERS, Learner, LearnerConfig, UpdateStats
+from layered.learners.base import LEARNERS, Learner, LearnerConfig, Losses
 from layered.outputs import OutputLayout
 
 
@@ -206,7 +206,7 @@ class TD3(Learner):
     def observe(self, transition: Transition) -> None:
         self.buffer.add(transition)
 
-    def update(self) -> UpdateStats | None:
+    def update(self) -> Losses | None:
         if len(self.buffer) == 0:
             return None
         b = self.buffer.sample(self.config.batch_size, self.rng)
@@ -214,10 +214,9 @@ class TD3(Learner):
         noise = torch.randn(b.action.shape, generator=self.torch_rng, device=self.device)
         critic_loss = self._critic_step(b, noise)
         self.updates += 1
-        actor_loss = None
-        if self.updates % self.config.policy_delay == 0:
-            actor_loss = self._actor_step(b.obs).item()
-        return UpdateStats(critic_loss=critic_loss.item(), actor_loss=actor_loss)
+        if self.updates % self.config.policy_delay:
+            return Losses(critic_loss)
+        return Losses(critic_loss, self._actor_step(b.obs))
 
     def _critic_step_eager(self, b: Batch, noise: torch.Tensor) -> torch.Tensor:
         """One critic step on `b`, with standard-normal `noise` for target smoothing; the loss."""
