@@ -96,6 +96,14 @@ class LayerConfig(Section):
     nearest deferring gate at or above this layer| / max action (j)."""
     warmup: int | None = Field(default=None, ge=0)
     """Decisions this layer takes uniformly at random before it learns; default `train.warmup`."""
+    updates: int = Field(default=1, gt=0)
+    """Gradient updates of the layer's learner after each of its decisions once it learns (its
+    `period` updates one per base step, as the authors' jointly trained slow layer and gate do)."""
+    learn_from_commits: bool = False
+    """For the layer right below a gate: in training, while the gate commits, the layer still
+    decides at its period, and the executed action is recorded as its decision, so that it learns
+    from every step, as the authors' jointly trained fast layer does (otherwise it learns only
+    from the steps it acts on). Evaluation never asks it while the gate commits."""
     weights: str | None = None
     """A checkpoint the layer starts from instead of new networks: another run's
     `checkpoints/<name>.best.pt` or `<name>.pt` (a path relative to the recipe file that sets it).
@@ -278,6 +286,9 @@ def _check_capabilities(recipe: Recipe) -> list[tuple[str, str]]:
         if layer.action_penalty_unit == "reward-per-step" and reward_per_step(recipe) is None:
             problems.append((f"layers[{i}].action_penalty_unit", f"{recipe.env.id} has no known return range and "
                              "episode length; give env.return_range, or the penalty in reward units"))
+    for i, layer in enumerate(recipe.layers):
+        if layer.learn_from_commits and (why := _cannot_learn_from_commits(recipe, i, action_dims)) is not None:
+            problems.append((f"layers[{i}].learn_from_commits", why))
     for i in range(len(recipe.layers)):
         learner = LEARNERS.get(recipe.learner_config(i).kind)
         layout = output_layout(recipe, i, action_dims)
@@ -285,6 +296,17 @@ def _check_capabilities(recipe: Recipe) -> list[tuple[str, str]]:
             problems.append((f"layers[{i}].learner", f"learner {recipe.learner_config(i).kind!r} cannot drive layer "
                              f"{recipe.layers[i].name!r}, which outputs {layout.describe()}: {why}"))
     return problems
+
+
+def _cannot_learn_from_commits(recipe: Recipe, i: int, action_dims: int) -> str | None:
+    """Why layer i cannot take the executed action as its decision under a committed gate, if it cannot."""
+    if i == 0 or not output_layout(recipe, i - 1, action_dims).gate_dims:
+        return "only the layer right below a gate can learn from its commits"
+    layer = recipe.layers[i]
+    if layer.delay or layer.max_repeat > 1 or output_layout(recipe, i, action_dims).gate_dims:
+        return ("the executed action must be a decision the layer could have taken: it needs delay 0, "
+                "max_repeat 1 and no gate of its own")
+    return None
 
 
 def _check_learners(recipe: Recipe) -> list[tuple[str, str]]:

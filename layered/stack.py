@@ -72,6 +72,7 @@ class Layer:
     defer_penalty: float
     deviation_penalty: float
     delay: int  # decisions between choosing an output and its taking effect
+    learns_from_commits: bool  # training only: decides under a committed gate, taking the executed action
     gamma: float  # the layer's discount per decision (or per base step)
     discount_per_step: bool  # True: a decision spanning k base steps is discounted by gamma**k
 
@@ -161,6 +162,7 @@ class Stack:
                 defer_penalty=cfg.defer_penalty,
                 deviation_penalty=cfg.deviation_penalty,
                 delay=cfg.delay,
+                learns_from_commits=cfg.learn_from_commits and not evaluation,
                 gamma=recipe.learner_config(i).gamma,
                 discount_per_step=recipe.train.discount == "step",
             ))
@@ -240,18 +242,38 @@ class Stack:
         return combiner.route(output[: self.action_dim + combiner.gate_dims])
 
     def next_due(self, start: int = 0) -> int | None:
-        """The first present layer with index >= start that decides at the current step, if any."""
+        """The first present layer with index >= start that decides at the current step, if any.
+        Below a committed gate none does, except a layer right below it that learns from commits."""
         for position, i in enumerate(self.active):
-            if i >= start and self.t % self.layers[i].period == 0 and self.t >= self.resume_at[i]:
+            if i >= start and self._due(i):
                 return i
             if self._route(position, i, self.held[i]) is Route.COMMIT:
-                return None
+                if position + 1 == len(self.active):
+                    return None
+                below = self.active[position + 1]
+                learns = below >= start and self.layers[below].learns_from_commits
+                return below if learns and self._due(below) else None
         return None
 
+    def _due(self, i: int) -> bool:
+        return self.t % self.layers[i].period == 0 and self.t >= self.resume_at[i]
+
     def decide(self, i: int, seen: np.ndarray, output: np.ndarray) -> None:
-        """Layer i, having observed `seen`, chose `output`: hold it and start its next transition."""
+        """Layer i, having observed `seen`, chose `output`: hold it and start its next transition.
+        Under a committed gate (a layer that learns from commits) the executed action is recorded
+        instead: the output that, had the gate deferred, would have been executed."""
+        if self.layers[i].learns_from_commits and i not in (composition := self.compose()).contributions:
+            output = self._executed_as_output(i, composition)
         self.decisions[i] = Decision(seen, output)
         self.hold(i, output)
+
+    def _executed_as_output(self, i: int, composition: Composition) -> np.ndarray:
+        """What layer i, kept out by the committed gate right above it, would have had to output for
+        the executed action had the gate deferred: that action less what the layers above the gate add."""
+        gate = self.active[self.active.index(i) - 1]
+        above = sum((c for j, c in composition.contributions.items() if j < gate), np.zeros(self.action_dim))
+        space = self.layers[i].action_space
+        return np.clip(composition.action - above, space.low, space.high).astype(np.float32)
 
     def hold(self, i: int, output: np.ndarray) -> None:
         """Layer i decided `output`; it is held until its next decision, or, with a delay of d,

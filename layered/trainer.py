@@ -313,6 +313,7 @@ def _run_episode(run: Run, state: LoopState, phase: Phase, budget: int, env: Lay
     layer, store its completed transition, act, step the env, update, log."""
     learners, recipe = run.learners, run.recipe
     warmups = {name: recipe.warmup(name) for name in phase.learn}
+    updates = {layer.name: layer.updates for layer in recipe.layers}
     for name in env.agent_iter():
         obs, _, terminated, truncated, info = env.last()
         learner, learns = learners[name], name in phase.learn
@@ -335,8 +336,10 @@ def _run_episode(run: Run, state: LoopState, phase: Phase, budget: int, env: Lay
         bar.advance(env.advanced)
         if learns:  # update
             state.decisions[name] += 1
-            if state.decisions[name] > warmups[name] and (losses := learner.update()) is not None:
-                state.pending[name].append(losses)
+            if state.decisions[name] > warmups[name]:
+                for _ in range(updates[name]):
+                    if (losses := learner.update()) is not None:
+                        state.pending[name].append(losses)
         if state.step >= state.next_eval:  # log
             _evaluate(run, state, phase, eval_env, bar)
             state.next_eval += recipe.eval.every

@@ -19,6 +19,14 @@ def test_pettingzoo_api(depth, kind):
     env.close()
 
 
+def test_pettingzoo_api_with_a_layer_that_learns_from_a_gates_commits():
+    recipe = stack_recipe([4, 1], "gate")
+    layers = [recipe.layers[0], recipe.layers[1].model_copy(update={"learn_from_commits": True})]
+    env = make_aec_env(recipe.model_copy(update={"layers": layers}), seed=0)
+    api_test(env, num_cycles=300)
+    env.close()
+
+
 def test_pettingzoo_api_mixed_combiners_on_mujoco():
     env = make_aec_env(stack_recipe([4, 2, 1], ["gate", "residual-clip", "residual-clip"], env="InvertedPendulum-v5"))
     api_test(env, num_cycles=200)

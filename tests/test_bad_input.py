@@ -9,6 +9,7 @@ from layered.cli import main
 RECIPES = Path(__file__).parent.parent / "recipes"
 TLA_C = RECIPES / "pendulum" / "tla-c.toml"
 TLA_O = RECIPES / "pendulum" / "tla-o.toml"
+TLA_J = RECIPES / "pendulum" / "tla-joint.toml"
 
 
 def files(tmp_path: Path) -> dict[str, str]:
@@ -30,6 +31,11 @@ CASES = {
                                     "learner 'td3-gate' cannot drive layer 'slow'"),
     "temporl without repeats": (["train", str(TLA_O), "layers.fast.learner.kind=temporl"],
                                 "learner 'temporl' cannot drive layer 'fast'"),
+    "learning from commits without a gate above": (["train", str(TLA_C), "layers.fast.learn_from_commits=true"],
+                                                   "only the layer right below a gate can learn from its commits"),
+    "learning from commits with a delay": (["train", str(TLA_J), "layers.fast.learn_from_commits=true",
+                                            "layers.fast.delay=1"], "it needs delay 0, max_repeat 1"),
+    "zero updates per decision": (["train", str(TLA_C), "layers.fast.updates=0"], "layers[1].updates"),
     "unknown plugin": (["train", str(TLA_C), "--plugin", "{tmp}/nope.py"], "plugin"),
     "zero steps": (["train", str(TLA_C), "--steps", "0"], "--steps: must be positive"),
     "steps not a number": (["train", str(TLA_C), "--steps", "lots"], "--steps: expected a whole number"),

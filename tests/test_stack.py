@@ -242,3 +242,47 @@ def test_joint_gate_shaping_defer_and_deviation_penalties():
     assert rewards == pytest.approx({0: -3.0 - 1.0 - 0.5 * 1.0, 1: -3.0 - 2.0 * 1.0})
     stack.hold(0, np.array([1.0, 1.0]))  # commits: no penalties for anyone
     assert stack.layer_rewards(-3.0, stack.compose()) == pytest.approx({0: -3.0, 1: -3.0})
+
+
+def learning_from_commits(periods, kinds, **kw):
+    recipe = stack_recipe(periods, kinds)
+    layers = [*recipe.layers[:-1], recipe.layers[-1].model_copy(update={"learn_from_commits": True})]
+    return Stack(recipe.model_copy(update={"layers": layers}), OBS, ACT, **kw)
+
+
+def test_a_layer_that_learns_from_commits_decides_under_a_commit_and_records_the_executed_action():
+    stack = learning_from_commits([3, 1], "gate")
+    commit, defer, fast = np.array([1.5, 0.5]), np.array([1.5, -0.5]), np.array([0.3], np.float32)
+    seen = np.zeros(4, np.float32)
+    timeline = []
+    for t in range(6):  # the slow layer commits 1.5 at t = 0 and defers at t = 3
+        due = stack.next_due(0)
+        if due == 0:
+            stack.decide(0, seen, commit if t == 0 else defer)
+            due = stack.next_due(1)
+        stack.decide(due, seen, fast)
+        recorded, executed = stack.decisions[1].output[0], stack.compose().action[0]
+        timeline.append((t, due, round(float(recorded), 6), round(float(executed), 6)))
+        stack.tick()
+    assert timeline == [
+        (0, 1, 1.5, 1.5), (1, 1, 1.5, 1.5), (2, 1, 1.5, 1.5),  # committed: the fast layer records 1.5
+        (3, 1, 0.3, 0.3), (4, 1, 0.3, 0.3), (5, 1, 0.3, 0.3),  # deferred: its own output, executed
+    ]
+
+
+def test_at_evaluation_a_layer_that_learns_from_commits_is_not_asked_under_a_commit():
+    stack = learning_from_commits([3, 1], "gate", evaluation=True)
+    stack.decide(0, np.zeros(4, np.float32), np.array([1.5, 0.5]))
+    assert stack.next_due(1) is None
+    stack.tick()
+    assert stack.next_due(0) is None
+
+
+def test_under_a_commit_what_the_layers_above_the_gate_add_is_not_part_of_the_recorded_action():
+    stack = learning_from_commits([4, 2, 1], ["residual-clip", "gate", "residual-clip"])
+    seen = np.zeros(5, np.float32)
+    stack.decide(0, seen, np.array([1.0]))
+    stack.decide(1, seen, np.array([0.5, 1.0]))  # commits 0.5: executed 1.0 + 0.5 = 1.5
+    assert stack.next_due(2) == 2
+    stack.decide(2, seen, np.array([-0.7]))
+    assert stack.decisions[2].output == pytest.approx([0.5]) and stack.compose().action == pytest.approx([1.5])

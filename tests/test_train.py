@@ -188,3 +188,38 @@ def test_a_layer_starts_from_another_runs_weights_and_the_run_keeps_a_copy(tmp_p
                                         f"layers.slow.weights={tmp_path / 'a' / 'checkpoints' / 'slow.pt'}"]),
               tmp_path / "c", progress=False)
     assert not (tmp_path / "c").exists()  # refused before anything was written
+
+
+def joint_phase(tmp_path, overrides, steps=400):
+    """The learners after one joint phase of the gated Pendulum recipe, and the phase's state."""
+    recipe = load_recipe(PENDULUM / "tla-joint.toml", [*TINY, *overrides])
+    tmp_path.mkdir()
+    learners = build_learners(recipe)
+    logs = [CsvLog(tmp_path / f"{name}.csv", fields) for name, fields in
+            (("metrics", metrics_fields(recipe)), ("episodes", EPISODE_FIELDS))]
+    for log in logs:
+        log.start()
+    run = Run(recipe, learners, *logs, tmp_path / "run.pt", None, False, StopRequest())
+    state = LoopState()
+    state.start_phase(0, ("slow", "fast"), recipe.eval.every, recipe.eval.every)
+    run_phase(run, state, phases_of(recipe)[0], steps)
+    return learners, state
+
+
+def test_a_fast_layer_that_learns_from_commits_stores_a_one_step_transition_at_every_step(tmp_path):
+    step_discount = "train.discount=step"  # gamma**k for a transition of k steps: shows each one's length
+    learners, state = joint_phase(tmp_path / "a", [step_discount, "layers.fast.learn_from_commits=true"])
+    # 400 steps, two whole 200-step episodes: the fast layer decided at every one
+    assert state.decisions["fast"] == 400 and len(learners["fast"].buffer) == 400
+    assert learners["fast"].buffer.state_dict()["discount"].unique().tolist() == [pytest.approx(0.99)]
+    learners, state = joint_phase(tmp_path / "b", [step_discount])
+    assert state.decisions["fast"] < 400  # without: only the steps the gate deferred, some spanning commits
+    assert learners["fast"].buffer.state_dict()["discount"].min() < 0.98
+
+
+def test_a_layer_makes_its_updates_after_each_decision_once_it_learns(tmp_path):
+    one, state = joint_phase(tmp_path / "a", ["layers.slow.warmup=10"])
+    three, state_three = joint_phase(tmp_path / "b", ["layers.slow.warmup=10", "layers.slow.updates=3"])
+    decisions = state.decisions["slow"]
+    assert decisions == state_three.decisions["slow"] == 68  # 2 x ceil(200 / 6): the period's own schedule
+    assert one["slow"].td3.updates == decisions - 10 and three["slow"].td3.updates == 3 * (decisions - 10)
