@@ -97,8 +97,8 @@ class LayerConfig(Section):
     warmup: int | None = Field(default=None, ge=0)
     """Decisions this layer takes uniformly at random before it learns; default `train.warmup`."""
     updates: int = Field(default=1, gt=0)
-    """Gradient updates of the layer's learner after each of its decisions once it learns (its
-    `period` updates one per base step, as the authors' jointly trained slow layer and gate do)."""
+    """Gradient updates of the layer's learner after each of its decisions once it learns; with
+    `updates = period`, one per base step, as the authors' jointly trained slow layer and gate make."""
     learn_from_commits: bool = False
     """For the layer right below a gate: in training, while the gate commits, the layer still
     decides at its period, and the executed action is recorded as its decision, so that it learns
