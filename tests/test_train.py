@@ -111,18 +111,25 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     assert proc.returncode == 2 and "not a readable checkpoint" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def first_phase(recipe, out: Path, steps: int):
+    """The learners and loop state after the recipe's first phase, run alone for `steps` steps, logging in `out`."""
+    out.mkdir()
+    learners = build_learners(recipe)
+    logs = [CsvLog(out / f"{name}.csv", fields) for name, fields in
+            (("metrics", metrics_fields(recipe)), ("episodes", EPISODE_FIELDS))]
+    for log in logs:
+        log.start()
+    run = Run(recipe, learners, *logs, out / "run.pt", None, False, StopRequest())
+    state, phase = LoopState(), phases_of(recipe)[0]
+    state.start_phase(0, phase.learn, recipe.eval.every, recipe.eval.every)
+    run_phase(run, state, phase, steps)
+    return learners, state
+
+
 def test_time_limit_truncation_bootstraps_and_termination_does_not(tmp_path):
     for env_id, terminates in (("Pendulum-v1", False), ("InvertedPendulum-v5", True)):
         recipe = load_recipe(stack_recipe([1], env=env_id).model_dump(), [*TINY, "train.warmup=1000"])
-        learners = build_learners(recipe)
-        logs = [CsvLog(tmp_path / f"{env_id}-{name}.csv", fields) for name, fields in
-                (("metrics", metrics_fields(recipe)), ("episodes", EPISODE_FIELDS))]
-        for log in logs:
-            log.start()
-        run = Run(recipe, learners, *logs, tmp_path / "run.pt", None, False, StopRequest())
-        state = LoopState()
-        state.start_phase(0, ("l0",), recipe.eval.every, recipe.eval.every)
-        run_phase(run, state, phases_of(recipe)[0], 450)
+        learners, _ = first_phase(recipe, tmp_path / env_id, 450)
         buffer = learners["l0"].buffer
         not_done = buffer.state_dict()["not_done"]
         assert len(buffer) >= 400  # Pendulum: two truncated episodes stored whole
@@ -190,20 +197,9 @@ def test_a_layer_starts_from_another_runs_weights_and_the_run_keeps_a_copy(tmp_p
     assert not (tmp_path / "c").exists()  # refused before anything was written
 
 
-def joint_phase(tmp_path, overrides, steps=400):
-    """The learners after one joint phase of the gated Pendulum recipe, and the phase's state."""
-    recipe = load_recipe(PENDULUM / "tla-joint.toml", [*TINY, *overrides])
-    tmp_path.mkdir()
-    learners = build_learners(recipe)
-    logs = [CsvLog(tmp_path / f"{name}.csv", fields) for name, fields in
-            (("metrics", metrics_fields(recipe)), ("episodes", EPISODE_FIELDS))]
-    for log in logs:
-        log.start()
-    run = Run(recipe, learners, *logs, tmp_path / "run.pt", None, False, StopRequest())
-    state = LoopState()
-    state.start_phase(0, ("slow", "fast"), recipe.eval.every, recipe.eval.every)
-    run_phase(run, state, phases_of(recipe)[0], steps)
-    return learners, state
+def joint_phase(out: Path, overrides: list[str]):
+    """The learners and loop state after 400 steps of the gated Pendulum recipe's joint phase."""
+    return first_phase(load_recipe(PENDULUM / "tla-joint.toml", [*TINY, *overrides]), out, 400)
 
 
 def test_a_fast_layer_that_learns_from_commits_stores_a_one_step_transition_at_every_step(tmp_path):
@@ -212,13 +208,13 @@ def test_a_fast_layer_that_learns_from_commits_stores_a_one_step_transition_at_e
     # 400 steps, two whole 200-step episodes: the fast layer decided at every one
     assert state.decisions["fast"] == 400 and len(learners["fast"].buffer) == 400
     assert learners["fast"].buffer.state_dict()["discount"].unique().tolist() == [pytest.approx(0.99)]
-    learners, state = joint_phase(tmp_path / "b", [step_discount])
+    learners, state = joint_phase(tmp_path / "b", [step_discount, "layers.fast.learn_from_commits=false"])
     assert state.decisions["fast"] < 400  # without: only the steps the gate deferred, some spanning commits
     assert learners["fast"].buffer.state_dict()["discount"].min() < 0.98
 
 
 def test_a_layer_makes_its_updates_after_each_decision_once_it_learns(tmp_path):
-    one, state = joint_phase(tmp_path / "a", ["layers.slow.warmup=10"])
+    one, state = joint_phase(tmp_path / "a", ["layers.slow.warmup=10", "layers.slow.updates=1"])
     three, state_three = joint_phase(tmp_path / "b", ["layers.slow.warmup=10", "layers.slow.updates=3"])
     decisions = state.decisions["slow"]
     assert decisions == state_three.decisions["slow"] == 68  # 2 x ceil(200 / 6): the period's own schedule
