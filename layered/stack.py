@@ -247,9 +247,7 @@ class Stack:
         for position, i in enumerate(self.active):
             if i >= start and self._due(i):
                 return i
-            if self._route(position, i, self.held[i]) is Route.COMMIT:
-                if position + 1 == len(self.active):
-                    return None
+            if self._route(position, i, self.held[i]) is Route.COMMIT:  # never the last layer: it only adds
                 below = self.active[position + 1]
                 learns = below >= start and self.layers[below].learns_from_commits
                 return below if learns and self._due(below) else None
