@@ -135,6 +135,21 @@ def test_gate_learner_proposes_an_action_and_a_gate_and_learns_which_pays():
     assert learner.act_macs() == (3 * 32 + 32 * 1) + (4 * 32 + 32 * 2)
 
 
+@pytest.mark.parametrize("head", ["min", "q1"])
+def test_gate_bootstraps_from_the_chosen_head_of_the_target_critic(head):
+    from layered.learners.gate_td3 import GateTD3, GateTD3Config
+
+    space = Box(np.array([-2.0, -1.0], np.float32), np.array([2.0, 1.0], np.float32))
+    config = GateTD3Config(hidden=(8,), gate_target=head)
+    learner = GateTD3(OBS, space, OutputLayout(1, gate_dims=1), config, seed=0)
+    obs = torch.as_tensor(np.random.default_rng(0).uniform(-1, 1, (32, 3)), dtype=torch.float32)
+    with torch.no_grad():
+        q1, q2 = learner.td3.critic_target(obs, learner.td3.actor_target(obs))
+    assert not torch.equal(q1, q2)  # two independently initialised heads
+    expected = q1 if head == "q1" else torch.minimum(q1, q2)
+    assert torch.equal(learner.choice.bootstrap(obs), expected)
+
+
 def test_target_networks_keep_no_autograd_history():
     """The soft target update must not record autograd history: it would grow with every update."""
     learner = filled(0)

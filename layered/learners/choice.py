@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import copy
 from abc import abstractmethod
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -21,11 +21,12 @@ from layered.outputs import OutputLayout
 class ChoiceQ:
     """Values `n` choices for a state and the action TD3 proposed there, and learns them."""
 
-    def __init__(self, td3: TD3, n: int) -> None:
+    def __init__(self, td3: TD3, n: int, head: Literal["min", "q1"] = "min") -> None:
         cfg = td3.config
         obs_dim, act_dim = td3.obs_space.shape[0], td3.action_space.shape[0]
         self.td3 = td3
         self.n = n
+        self.head = head
         self.net = mlp((obs_dim + act_dim, *cfg.hidden, n)).to(td3.device)
         self.opt = adam(self.net.parameters(), cfg.lr)
         self.buffer = ReplayBuffer(obs_dim, act_dim + 1, cfg.buffer_size, td3.device)  # the choice is the last column
@@ -48,13 +49,17 @@ class ChoiceQ:
             return
         b = self.buffer.sample(batch_size, rng)
         action, choice = b.action[:, :-1], b.action[:, -1:].long()
-        with torch.no_grad():
-            q1, q2 = self.td3.critic_target(b.next_obs, self.td3.actor_target(b.next_obs))
-            target = b.reward + b.not_done * b.discount * torch.min(q1, q2)
+        target = b.reward + b.not_done * b.discount * self.bootstrap(b.next_obs)
         loss = nn.functional.mse_loss(self.net(torch.cat([b.obs, action], dim=-1)).gather(1, choice), target)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
+
+    @torch.no_grad()
+    def bootstrap(self, next_obs: torch.Tensor) -> torch.Tensor:
+        """TD3's target critic on the target actor's action: the smaller head, or the first (`head`)."""
+        q1, q2 = self.td3.critic_target(next_obs, self.td3.actor_target(next_obs))
+        return q1 if self.head == "q1" else torch.min(q1, q2)
 
     def macs(self) -> int:
         return linear_macs(self.net)
@@ -88,14 +93,14 @@ class TD3WithChoice(Learner):
     """A learner whose output is a TD3 action followed by one discrete choice, encoded as a number."""
 
     def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: TD3Config, seed: int,
-                 choices: int) -> None:
+                 choices: int, head: Literal["min", "q1"] = "min") -> None:
         super().__init__(obs_space, action_space, layout, config, seed)
         inner = Box(action_space.low[:-1], action_space.high[:-1], dtype=np.float32)  # the choice is the last entry
         own = set(type(config).model_fields) - set(TD3Config.model_fields)
         td3_config = TD3Config(**config.model_dump(exclude={"kind", *own}))
         self.td3 = TD3(obs_space, inner, OutputLayout(layout.size - 1), td3_config, seed)
         self.rng = np.random.default_rng([seed, 1])
-        self.choice = ChoiceQ(self.td3, choices)
+        self.choice = ChoiceQ(self.td3, choices, head)
 
     @abstractmethod
     def encode(self, index: int) -> float:

@@ -26,6 +26,9 @@ class GateTD3Config(TD3Config):
     kind: Literal["td3-gate"] = "td3-gate"  # type: ignore[assignment]
     gate_epsilon: float = Field(default=0.1, ge=0, le=1)
     """While exploring, the probability of a uniformly random gate choice."""
+    gate_target: Literal["min", "q1"] = "min"
+    """The gate bootstraps from TD3's target critic: the smaller of its two heads, as TD3's own
+    target does, or the first head alone, as the authors' code does."""
 
 
 @LEARNERS.register("td3-gate")
@@ -37,7 +40,7 @@ class GateTD3(TD3WithChoice):
 
     def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: GateTD3Config,
                  seed: int) -> None:
-        super().__init__(obs_space, action_space, layout, config, seed, choices=2)
+        super().__init__(obs_space, action_space, layout, config, seed, choices=2, head=config.gate_target)
 
     @classmethod
     def unfit(cls, layout: OutputLayout) -> str | None:
