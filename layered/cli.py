@@ -62,7 +62,7 @@ def _parser() -> argparse.ArgumentParser:
     tr = sub.add_parser(
         "train", help="train a recipe and write a run directory",
         usage="layered train RECIPE [key=value ...] [--out DIR] [--seed S] [--steps N] [--threads T] [--force] "
-        "[--tensorboard]",
+        "[--tensorboard] [--device {cpu,cuda,auto}] [--plugin FILE.py|MODULE]",
         epilog="key=value pairs override recipe values, e.g. train.warmup=500 layers.fast.period=2",
     )
     tr.add_argument("recipe", help="recipe TOML file")
@@ -113,7 +113,8 @@ def _parser() -> argparse.ArgumentParser:
     _plugin_option(ex, "besides those the run was trained with")
     sw = sub.add_parser(
         "sweep", help="train every recipe with several seeds, in parallel processes",
-        usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--out DIR] [--steps N]",
+        usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--out DIR] [--steps N] "
+        "[--device {cpu,cuda,auto}] [--backend {local,ray}] [--address ADDR] [--plugin FILE.py|MODULE]",
         epilog="finished runs are skipped and stopped ones resume; then: layered report DIR",
     )
     sw.add_argument("recipes", nargs="+", metavar="RECIPE", help="recipe files (and key=value overrides)")
@@ -255,7 +256,7 @@ def _export(args: argparse.Namespace) -> int:
     if args.threshold is not None and args.threshold < 0:
         return _fail("--threshold must be >= 0")
     if args.format == "onnx" and not _installed("onnxruntime", "onnxscript"):
-        return _fail("--format onnx needs the extra layered[onnx]: pip install 'layered[onnx]'")
+        return _fail("--format onnx needs the extra layered[onnx]: pip install -e '.[onnx]' in the checkout")
     load_plugins(run_plugins(args.run_dir) + args.plugin)
     recipe = load_recipe(args.run_dir / "recipe.toml")
     active = list(phases_of(recipe)[-1].active)

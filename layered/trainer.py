@@ -188,7 +188,7 @@ def train(
                                           "here (use 'inductor' or 'off')")])
     if recipe.log.tensorboard and not events_available():
         raise RecipeError("recipe", [("log.tensorboard", "needs the extra layered[tensorboard]: "
-                                      "pip install 'layered[tensorboard]'")])
+                                      "pip install -e '.[tensorboard]' in the checkout")])
     info = RunInfo(label or out.name, max_steps, tuple(plugins))
     learners = build_learners(recipe)
     if not (resume and has_progress(out)):
