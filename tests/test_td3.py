@@ -1,5 +1,7 @@
 """TD3: deterministic given a seed, save -> load gives identical behaviour, learns a simple target."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -171,6 +173,21 @@ def test_a_zero_output_actor_starts_at_the_middle_of_its_range_and_then_learns()
     for _ in range(4):
         learner.update()
     assert not np.array_equal(learner.act(np.ones(3, np.float32), False), [0.0, 0.5])
+
+
+def test_the_actor_waits_for_the_critic_warmup_while_the_critic_targets_follow():
+    learner = filled(7, config=CONFIG.model_copy(update={"critic_warmup": 4}))
+    actor = copy.deepcopy(learner.actor.state_dict())
+    actor_target = copy.deepcopy(learner.actor_target.state_dict())
+    critic_target = copy.deepcopy(learner.critic_target.state_dict())
+    for _ in range(4):  # updates 2 and 4 would move the actor without the warm-up
+        assert learner.update().actor is None
+    assert all(torch.equal(v, learner.actor.state_dict()[k]) for k, v in actor.items())
+    assert all(torch.equal(v, learner.actor_target.state_dict()[k]) for k, v in actor_target.items())
+    moved = [not torch.equal(v, learner.critic_target.state_dict()[k]) for k, v in critic_target.items()]
+    assert all(moved)  # two soft updates of the critic's targets, at updates 2 and 4
+    assert learner.update().actor is None and learner.update().actor is not None  # update 6 is the first
+    assert not torch.equal(actor["net.0.weight"], learner.actor.state_dict()["net.0.weight"])
 
 
 def test_compiled_steps_give_the_eager_updates():

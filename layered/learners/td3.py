@@ -42,6 +42,10 @@ class TD3Config(LearnerConfig):
     (0.5 on a residual layer of twice the environment's range: uniform over the environment's)."""
     policy_delay: int = Field(default=2, gt=0)
     """Critic updates per actor and target update."""
+    critic_warmup: int = Field(default=0, ge=0)
+    """Critic updates before the actor's first: until then the actor keeps its initial policy (with
+    `zero_output`, a residual layer that adds nothing) while the critic learns the values of what
+    that policy does, and the targets follow the critic as usual."""
     buffer_size: int = Field(default=1_000_000, gt=0)
     """Replay capacity in transitions."""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
@@ -216,6 +220,9 @@ class TD3(Learner):
         self.updates += 1
         if self.updates % self.config.policy_delay:
             return Losses(critic_loss)
+        if self.updates <= self.config.critic_warmup:
+            self._follow_critic()
+            return Losses(critic_loss)
         return Losses(critic_loss, self._actor_step(b.obs))
 
     def _critic_step_eager(self, b: Batch, noise: torch.Tensor) -> torch.Tensor:
@@ -248,6 +255,12 @@ class TD3(Learner):
             for targets, sources in self._target_pairs:
                 torch._foreach_lerp_(targets, sources, self.config.tau)
         return loss.detach()
+
+    @torch.no_grad()
+    def _follow_critic(self) -> None:
+        """The critic's target update alone, while the actor waits (see TD3Config.critic_warmup)."""
+        targets, sources = self._target_pairs[1]
+        torch._foreach_lerp_(targets, sources, self.config.tau)
 
     def _precision(self) -> torch.autocast:
         """The precision of the update's matrix products (see TD3Config.precision)."""
