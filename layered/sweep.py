@@ -174,7 +174,8 @@ def run_ray(jobs: Sequence[Job], address: str | None = None) -> list[Outcome]:
     try:
         import ray
     except ImportError:
-        raise RuntimeError("the ray backend needs the optional extra: pip install -e '.[ray]' in the checkout") from None
+        raise RuntimeError("the ray backend needs the optional extra: pip install -e '.[ray]' in the "
+                           "checkout") from None
     ray.init(address=address, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True,
              runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})
     task = ray.remote(num_cpus=1)(_run_remote)
