@@ -1,4 +1,4 @@
-"""The documentation that is generated from code matches the code."""
+"""The documentation that is generated from code matches the code, and its links lead somewhere."""
 
 import re
 from pathlib import Path
@@ -41,3 +41,37 @@ def test_recipe_list_names_every_shipped_recipe():
         if rel not in named and not dmc_row:
             missing.append(rel)
     assert not missing, f"add to docs/recipes.md: {missing}"
+
+
+def _anchors(markdown: str) -> set[str]:
+    """The anchors GitHub gives a file's headings: lower case, punctuation dropped, spaces to
+    hyphens, and -1, -2, ... on repeats."""
+    seen: dict[str, int] = {}
+    anchors = set()
+    for heading in re.findall(r"^#+ (.+)$", re.sub(r"```.*?```", "", markdown, flags=re.S), flags=re.M):
+        slug = re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+        anchors.add(slug if slug not in seen else f"{slug}-{seen[slug]}")
+        seen[slug] = seen.get(slug, 0) + 1
+    return anchors
+
+
+def test_anchor_slugs_follow_github():
+    assert _anchors("# A b\n## The real-time (delayed) setting\n## A b\n") == {
+        "a-b", "the-real-time-delayed-setting", "a-b-1"}
+
+
+def test_relative_links_and_their_anchors_resolve():
+    root = DOCS.parent
+    broken = []
+    for page in [root / "README.md", root / "DEVELOPERS.md", *sorted(DOCS.glob("*.md"))]:
+        text = page.read_text()
+        for target in re.findall(r"\]\(([^)\s]+)\)", text):
+            if re.match(r"[a-z]+:", target):
+                continue  # an absolute URL
+            path, _, anchor = target.partition("#")
+            file = (page.parent / path).resolve() if path else page
+            if not file.exists():
+                broken.append(f"{page.name}: {target} (no such file)")
+            elif anchor and file.suffix == ".md" and anchor not in _anchors(file.read_text()):
+                broken.append(f"{page.name}: {target} (no such heading)")
+    assert not broken, broken
