@@ -190,6 +190,27 @@ def test_the_actor_waits_for_the_critic_warmup_while_the_critic_targets_follow()
     assert not torch.equal(actor["net.0.weight"], learner.actor.state_dict()["net.0.weight"])
 
 
+def test_an_anchored_actor_stays_near_the_middle_of_its_range():
+    """Rewards that grow with the first action dimension pull the actor up; the anchor holds it back."""
+    def trained(anchor):
+        learner = TD3(OBS, ACT, OutputLayout(2), CONFIG.model_copy(update={"actor_anchor": anchor, "lr": 3e-3}), 0)
+        rng = np.random.default_rng(0)
+        for _ in range(256):
+            o, a = rng.uniform(-1, 1, 3).astype(np.float32), learner.random_action()
+            learner.observe(Transition(o, a, float(a[0]), o, True, 0.99))
+        for _ in range(200):
+            learner.update()
+        return learner.act(np.zeros(3, np.float32), explore=False)
+
+    free, anchored = trained(0.0), trained(10.0)
+    assert free[0] > 1.5  # towards the top of [-2, 2]
+    # Q = a0 (one terminal step). In a0 the value's term -Q / mean|Q| pulls with 1 / a0 and the anchor's
+    # 10 * mean(((a - middle) / half)²) pushes back with 10 * a0 / 4: they balance at a0 = 2 / sqrt(10) = 0.632.
+    # Nothing pulls a1, which the anchor holds at 0.5, the middle of [0, 1].
+    assert anchored[0] == pytest.approx(2 / np.sqrt(10), abs=0.08)
+    assert anchored[1] == pytest.approx(0.5, abs=0.05)
+
+
 def test_compiled_steps_give_the_eager_updates():
     eager, inductor = filled(5), filled(5, config=CONFIG.model_copy(update={"compile": "inductor"}))
     for _ in range(4):

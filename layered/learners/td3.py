@@ -46,6 +46,11 @@ class TD3Config(LearnerConfig):
     """Critic updates before the actor's first: until then the actor keeps its initial policy (with
     `zero_output`, a residual layer that adds nothing) while the critic learns the values of what
     that policy does, and the targets follow the critic as usual."""
+    actor_anchor: float = Field(default=0.0, ge=0)
+    """Weight of a term in the actor's loss that holds its output near the middle of its range:
+    mean ((output - middle) / half-range)², against the critic's value divided by its mean
+    magnitude (TD3+BC's form, with the middle as the behaviour), so that a residual layer moves
+    away from adding nothing only where its critic shows a clear gain. 0 leaves TD3's loss as is."""
     buffer_size: int = Field(default=1_000_000, gt=0)
     """Replay capacity in transitions."""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
@@ -246,8 +251,12 @@ class TD3(Learner):
         # Q1 on detached weights: the actor's gradient flows through it, Q1's own is not computed
         frozen_q1 = {name: p.detach() for name, p in self.critic.q1.named_parameters()}
         with self._precision():
-            q1 = functional_call(self.critic.q1, frozen_q1, (torch.cat([obs, self.actor(obs)], dim=-1),))
+            action = self.actor(obs)
+            q1 = functional_call(self.critic.q1, frozen_q1, (torch.cat([obs, action], dim=-1),))
             loss = -q1.mean()
+            if self.config.actor_anchor:
+                off_centre = ((action - self.actor.centre) / self.actor.scale).square().mean()
+                loss = loss / q1.detach().abs().mean() + self.config.actor_anchor * off_centre
         self.actor_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.actor_opt.step()
