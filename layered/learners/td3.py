@@ -226,7 +226,7 @@ class TD3(Learner):
         if self.updates % self.config.policy_delay:
             return Losses(critic_loss)
         if self.updates <= self.config.critic_warmup:
-            self._follow_critic()
+            self._follow(self._target_pairs[1:])  # the critic's targets alone: the actor waits
             return Losses(critic_loss)
         return Losses(critic_loss, self._actor_step(b.obs))
 
@@ -260,16 +260,14 @@ class TD3(Learner):
         self.actor_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.actor_opt.step()
-        with torch.no_grad():  # else each update's lerp joins the targets' autograd history, which then grows
-            for targets, sources in self._target_pairs:
-                torch._foreach_lerp_(targets, sources, self.config.tau)
+        self._follow(self._target_pairs)
         return loss.detach()
 
-    @torch.no_grad()
-    def _follow_critic(self) -> None:
-        """The critic's target update alone, while the actor waits (see TD3Config.critic_warmup)."""
-        targets, sources = self._target_pairs[1]
-        torch._foreach_lerp_(targets, sources, self.config.tau)
+    @torch.no_grad()  # else each update's lerp joins the targets' autograd history, which then grows
+    def _follow(self, pairs: list[tuple[list[torch.Tensor], list[torch.Tensor]]]) -> None:
+        """The soft update of each (targets, sources) pair's targets towards its sources."""
+        for targets, sources in pairs:
+            torch._foreach_lerp_(targets, sources, self.config.tau)
 
     def _precision(self) -> torch.autocast:
         """The precision of the update's matrix products (see TD3Config.precision)."""
