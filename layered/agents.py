@@ -17,7 +17,7 @@ from pettingzoo import AECEnv
 
 from layered.envs import make_env
 from layered.metrics import StepRecord
-from layered.recipe import Recipe
+from layered.schema import Recipe
 from layered.stack import Stack
 
 

@@ -18,7 +18,7 @@ class Transition(NamedTuple):
     next_obs: np.ndarray
     terminated: bool
     discount: float  # the discount applied to the bootstrap value (gamma, or gamma**k)
-    path: tuple[tuple[np.ndarray, float], ...] = ()  # (observation, reward) per period of a repeat
+    path: tuple[tuple[np.ndarray, float, int], ...] = ()  # per period of a repeat: observation, reward, discount units
 
 
 class Batch(NamedTuple):

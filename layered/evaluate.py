@@ -12,7 +12,7 @@ from tqdm import tqdm
 from layered.agents import LayeredEnv, make_aec_env
 from layered.learners import Learner
 from layered.metrics import EpisodeMeasures, Evaluation, StepRecord, measure_episode, summarise
-from layered.recipe import Recipe
+from layered.schema import Recipe
 
 
 def run_episode(env: LayeredEnv, learners: Mapping[str, Learner], seed: int | None) -> EpisodeMeasures:

@@ -1,9 +1,10 @@
 """`layered export`: a trained stack as files that run without the training code.
 
 The directory holds one policy per present layer (TorchScript `.pt` or ONNX `.onnx`), `stack.json`
-with what the runtime needs of the stack (periods, delays, what each layer sees, combiners with
-their evaluation thresholds, output bounds), and `layered_runtime.py`, the runtime itself.
-Everything in `stack.json` is read off the library's own evaluation `Stack`.
+(the rules of the evaluation stack as `Rules.to_json` writes them: periods, delays, what each layer
+sees, combiners with their evaluation thresholds, output bounds), the package `layered_runtime/`
+(the runtime with copies of the library's own rules and combiners) and, under `plugins/`, the
+source of each plugin combiner the stack merges through.
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import logging
+import inspect
 import shutil
 import warnings
 from collections.abc import Mapping
@@ -19,44 +22,37 @@ from typing import Any
 
 import torch
 
-from layered import runtime
+from layered import combiners, outputs, registry, rules, runtime
 from layered.agents import make_aec_env
 from layered.learners import Learner
-from layered.recipe import Recipe
-from layered.stack import Stack, combiner_kind
+from layered.schema import Recipe
+from layered.stack import Stack
 
 FORMATS = {"torchscript": ".pt", "onnx": ".onnx"}
-RUNTIME_FILE = "layered_runtime.py"
+RUNTIME_PACKAGE = "layered_runtime"
+# The modules the runtime is made of, as they are named in the exported package; they import each
+# other relatively and nothing else of the library.
+RUNTIME_MODULES = {"__init__.py": runtime, "rules.py": rules, "combiners.py": combiners, "outputs.py": outputs,
+                   "registry.py": registry}
 
 
 class ExportError(ValueError):
-    """A stack that the runtime cannot run (a plugin combiner, a learner without an exportable policy)."""
+    """A stack that cannot be exported (a learner without an exportable policy, an unknown format)."""
 
 
-def stack_spec(recipe: Recipe, stack: Stack, backend: str) -> dict[str, Any]:
+def plugin_sources(stack: Stack) -> list[Path]:
+    """The files of the plugin combiners the stack merges through: those defined outside the library."""
+    library = Path(combiners.__file__).parent
+    files = {Path(inspect.getfile(type(layer.rules.combiner))).resolve()
+             for layer in stack.layers if layer.rules.combiner is not None}
+    return sorted(f for f in files if f.parent != library)
+
+
+def stack_spec(recipe: Recipe, stack: Stack, backend: str, plugins: list[str]) -> dict[str, Any]:
     """What the runtime needs of an evaluation stack, as plain JSON values."""
-    layers = []
-    for i, layer in enumerate(stack.layers):
-        kind = combiner_kind(recipe, i)
-        if kind not in (None, "residual-clip", "gate"):
-            raise ExportError(f"layer {layer.name!r} merges through the combiner {kind!r}; the exported runtime "
-                              "knows the built-in combiners residual-clip and gate only")
-        threshold = layer.combiner.threshold if layer.combiner is not None else None
-        layers.append({
-            "name": layer.name, "period": layer.period, "delay": layer.delay, "sees": list(layer.sees),
-            "combiner": kind, "per_dimension": recipe.combine.per_dimension,
-            "threshold": None if threshold is None else [float(x) for x in threshold],
-            "gate_dims": layer.layout.gate_dims, "max_repeat": layer.layout.max_repeat,
-            "observation_dim": int(stack.observation_spaces[i].shape[0]),
-            "output_low": [float(x) for x in layer.action_space.low],
-            "output_high": [float(x) for x in layer.action_space.high],
-        })
-    return {
-        "format": runtime.FORMAT, "backend": backend, "env": recipe.env.id,
-        "active": [stack.layers[i].name for i in stack.active], "action_dim": stack.action_dim,
-        "action_low": [float(x) for x in stack.low], "action_high": [float(x) for x in stack.high],
-        "layers": layers,
-    }
+    return {"backend": backend, "env": recipe.env.id, "rules": stack.rules.to_json(), "plugins": plugins,
+            "observation_dims": {layer.name: int(space.shape[0])
+                                 for layer, space in zip(stack.layers, stack.observation_spaces, strict=True)}}
 
 
 def _policy(learner: Learner, name: str) -> torch.nn.Module:
@@ -73,9 +69,18 @@ def _write_policy(module: torch.nn.Module, obs_dim: int, path: Path) -> None:
             warnings.simplefilter("ignore", DeprecationWarning)
             torch.jit.save(torch.jit.trace(module, (example,)), str(path))
         return
-    with contextlib.redirect_stdout(io.StringIO()):  # the exporter narrates its passes
-        torch.onnx.export(module, (example,), str(path), input_names=["obs"], output_names=["output"],
-                          dynamo=True, external_data=False, verbose=False)
+    onnx_log = logging.getLogger("torch.onnx")
+    level = onnx_log.level
+    onnx_log.setLevel(logging.ERROR)  # it warns that torchvision's operators are not installed: none is used
+    # it narrates its passes, and warns of deprecations inside torch that only torch can act on
+    with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        try:
+            torch.onnx.export(module, (example,), str(path), input_names=["obs"], output_names=["output"],
+                              dynamo=True, external_data=False, verbose=False)
+        finally:
+            onnx_log.setLevel(level)
 
 
 def export_stack(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], out: Path, backend: str,
@@ -85,12 +90,17 @@ def export_stack(recipe: Recipe, learners: Mapping[str, Learner], active: list[s
         raise ExportError(f"unknown format {backend!r}; known: {', '.join(FORMATS)}")
     env = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold)
     env.close()
-    spec = stack_spec(recipe, env.stack, backend)
+    sources = plugin_sources(env.stack)
+    spec = stack_spec(recipe, env.stack, backend, [f"plugins/{source.name}" for source in sources])
     modules = {name: _policy(learners[name], name) for name in active}
     out.mkdir(parents=True, exist_ok=True)
-    for layer in spec["layers"]:
-        if layer["name"] in modules:
-            _write_policy(modules[layer["name"]], layer["observation_dim"], out / f"{layer['name']}{FORMATS[backend]}")
-    shutil.copyfile(runtime.__file__, out / RUNTIME_FILE)
+    for name, module in modules.items():
+        _write_policy(module, spec["observation_dims"][name], out / f"{name}{FORMATS[backend]}")
+    (out / RUNTIME_PACKAGE).mkdir(exist_ok=True)
+    for file, source in RUNTIME_MODULES.items():
+        shutil.copyfile(inspect.getfile(source), out / RUNTIME_PACKAGE / file)
+    for source in sources:
+        (out / "plugins").mkdir(exist_ok=True)
+        shutil.copyfile(source, out / "plugins" / source.name)
     (out / "stack.json").write_text(json.dumps(spec, indent=2) + "\n")
     return out

@@ -11,7 +11,7 @@ import sys
 from pydantic import BaseModel
 
 from layered.learners import LEARNERS
-from layered.recipe import (
+from layered.schema import (
     CombineConfig,
     EnvConfig,
     EvalConfig,

@@ -1,4 +1,7 @@
-"""Name-to-class registries: the extension points for combiners, learners, orders and env families."""
+"""Name-to-class registries: the extension points for combiners, learners, orders and env families.
+
+Pure Python, no dependencies: the exported runtime carries a copy of this file (for combiners).
+"""
 
 from __future__ import annotations
 
@@ -31,6 +34,13 @@ class Registry(Generic[T]):
         if name not in self._entries:
             raise KeyError(f"unknown {self.kind} {name!r}; known: {', '.join(sorted(self._entries))}")
         return self._entries[name]
+
+    def name_of(self, entry: T) -> str:
+        """The name `entry` is registered under, or a KeyError."""
+        for name, registered in self._entries.items():
+            if registered is entry:
+                return name
+        raise KeyError(f"{entry!r} is not a registered {self.kind}")
 
     def names(self) -> list[str]:
         """Registered names, sorted."""

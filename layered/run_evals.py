@@ -12,7 +12,7 @@ from typing import Any
 from layered.learners import Learner
 from layered.plugins import load_plugins
 from layered.recipe import Recipe, load_recipe
-from layered.stack import combiner_kind
+from layered.combiners import COMBINERS
 
 SWEEP_FILE = "threshold-sweep.csv"
 DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]
@@ -50,8 +50,9 @@ def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | Non
 
 
 def has_threshold(recipe: Recipe) -> bool:
-    """Whether some layer's contribution passes a residual combiner's threshold: what Fig. 2 varies."""
-    return any(combiner_kind(recipe, i) == "residual-clip" for i in range(len(recipe.layers)))
+    """Whether some layer's contribution passes a combiner's evaluation threshold: what Fig. 2 varies."""
+    kinds = [recipe.combiner_kind(i) for i in range(len(recipe.layers))]
+    return any(COMBINERS.get(kind).thresholded for kind in kinds if kind is not None)
 
 
 def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None) -> list[dict[str, Any]]:

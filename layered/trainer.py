@@ -35,7 +35,6 @@ from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.report import plot_curves, results_table
 from layered.rundir import RunDirError, RunInfo, has_progress, prepare_run_dir, read_run_info
 from layered.runstate import LoopState, UpdateStats, load_run, save_run
-from layered.stack import output_layout
 
 EPISODE_FIELDS = ["phase", "step", "return", "length"]
 FRESH_MEASURES = ("return_mean", "return_std", "repetition", "decisions", "jerk")
@@ -102,7 +101,7 @@ def build_learners(recipe: Recipe, device: str | None = None) -> dict[str, Learn
         if device is not None and "device" in type(config).model_fields:
             config = config.model_copy(update={"device": device})
         space = env.action_space(layer.name)
-        layout = output_layout(recipe, i, env.stack.action_dim)
+        layout = recipe.output_layout(i, env.stack.action_dim)
         seed = recipe.train.seed * 1000 + i
         learners[layer.name] = LEARNERS.get(config.kind)(env.observation_space(layer.name), space, layout, config, seed)
     env.close()

@@ -20,7 +20,7 @@ from layered.agents import make_aec_env
 from layered.evaluate import run_episode
 from layered.learners import Learner
 from layered.metrics import StepRecord
-from layered.recipe import Recipe
+from layered.schema import Recipe
 
 WINDOW = 80  # steps shown in the strip
 LABEL_WIDTH = 64

@@ -102,6 +102,6 @@ def test_a_repeating_layer_gets_the_observation_and_reward_of_each_period_it_hel
     _, reward, _, _, info = env.last()
     path = info["transition"].path
     assert info["elapsed"] == 3 and len(path) == 3
-    for (o, r), (eo, er) in zip(path, expected, strict=True):
-        assert o == pytest.approx(eo, rel=1e-5) and r == pytest.approx(er)
+    for (o, r, units), (eo, er) in zip(path, expected, strict=True):
+        assert o == pytest.approx(eo, rel=1e-5) and r == pytest.approx(er) and units == 1  # one per period
     assert reward == pytest.approx(sum(r for _, r in expected)) == info["transition"].reward

@@ -15,12 +15,40 @@ def test_registry_holds_both_paper_combiners():
 
 
 def test_residual_always_adds():
-    assert ResidualClip().route(np.array([5.0, -5.0])) is Route.ADD
+    assert ResidualClip().route(np.array([5.0, -5.0])) == Route.ADD
+    assert ResidualClip().route(np.zeros((3, 2))).tolist() == [Route.ADD] * 3
 
 
 @pytest.mark.parametrize(("gate", "route"), [(0.01, Route.COMMIT), (0.0, Route.DEFER), (-0.7, Route.DEFER)])
 def test_gate_commits_only_when_its_last_output_is_positive(gate, route):
-    assert Gate().route(np.array([1.5, -0.3, gate])) is route
+    assert Gate().route(np.array([1.5, -0.3, gate])) == route
+
+
+def test_routes_and_admissions_over_a_batch_are_those_of_each_row():
+    gates = np.array([[1.5, 0.01], [1.5, 0.0], [-1.0, -0.7]])
+    assert Gate().route(gates).tolist() == [Route.COMMIT, Route.DEFER, Route.DEFER]
+    combiner = ResidualClip(threshold=np.array([0.6, 0.6]))
+    above = np.array([[1.0, -1.0], [1.0, -1.0], [1.8, 1.8]])
+    contributions = np.array([[0.5, -0.1], [0.7, -0.1], [3.0, 3.0]])
+    assert combiner.admit(above, contributions, LOW, HIGH).tolist() == [[0.0, 0.0], [0.7, -0.1], [0.0, 0.0]]
+
+
+def test_combiners_describe_themselves():
+    assert (ResidualClip.gate_dims, ResidualClip.residual_below, ResidualClip.thresholded) == (0, True, True)
+    assert (Gate.gate_dims, Gate.residual_below, Gate.thresholded) == (1, False, False)
+    assert ResidualClip.encoding is None and Gate.encoding is not None
+    assert Gate.encoding.value(True) == 1.0 and Gate.encoding.value(False) == -1.0
+    assert bool(Gate.encoding.commits(0.01)) and not bool(Gate.encoding.commits(0.0))
+
+
+def test_a_combiner_written_to_json_reads_back_the_same():
+    from layered.combiners import combiner_from_json
+
+    combiner = ResidualClip(threshold=np.array([0.6, 0.25], np.float32), per_dimension=True)
+    data = combiner.to_json()
+    assert data == {"kind": "residual-clip", "per_dimension": True, "threshold": [0.6000000238418579, 0.25]}
+    back = combiner_from_json(data)
+    assert type(back) is ResidualClip and back.per_dimension and back.threshold.tolist() == combiner.threshold.tolist()
 
 
 def test_residual_without_threshold_admits_everything():

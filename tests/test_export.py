@@ -1,5 +1,6 @@
 """`layered export`: an exported stack, run by the standalone runtime, executes the same actions as
-the library on real episodes (periods, holds, delays, thresholds, gates and repeats)."""
+the library on real episodes (periods, holds, delays, thresholds, gates and repeats), plugin
+combiners included."""
 
 import json
 import subprocess
@@ -10,7 +11,7 @@ import pytest
 
 from layered import load_recipe
 from layered.cli import main
-from layered.export import ExportError, export_stack
+from layered.export import export_stack
 from layered.latency import compare
 from layered.trainer import build_learners, phases_of
 
@@ -45,9 +46,10 @@ def test_onnx_export_executes_the_library_actions(tmp_path):
     recipe, learners, active, out = exported("recipes/research/pendulum-gate-over-residual-3.toml", [], tmp_path,
                                              "onnx")
     assert sorted(p.name for p in out.iterdir()) == [
-        "fast.onnx", "layered_runtime.py", "mid.onnx", "slow.onnx", "stack.json"]
+        "fast.onnx", "layered_runtime", "mid.onnx", "slow.onnx", "stack.json"]
     result = compare(recipe, learners, active, out, episodes=2, seed=7)
-    assert result.max_difference < 1e-5
+    assert result.matches and result.max_difference < 1e-5
+    assert result.exported_return == pytest.approx(result.library_return, rel=1e-3)
 
 
 def test_exported_directory_runs_with_torch_alone(tmp_path):
@@ -60,13 +62,51 @@ def test_exported_directory_runs_with_torch_alone(tmp_path):
     assert done.stdout.strip().endswith("['fast']")  # step 5: period 4 slow layer idle, the fast one decides
 
 
-def test_plugin_combiner_is_refused(tmp_path, monkeypatch):
-    from layered.combiners import COMBINERS, ResidualClip
+HALVING = """
+import numpy as np
 
-    monkeypatch.setitem(COMBINERS._entries, "test-custom", type("Custom", (ResidualClip,), {}))
-    recipe = load_recipe("recipes/pendulum/tla-c.toml", [*SMALL, "combine.kind=test-custom"])
-    with pytest.raises(ExportError, match="test-custom"):
-        export_stack(recipe, build_learners(recipe), ["slow", "fast"], tmp_path / "x", "torchscript")
+from layered.combiners import COMBINERS, Combiner, Route
+
+
+@COMBINERS.register("test-halving")
+class Halving(Combiner):
+    \"\"\"The layers below add half of their action; at evaluation a half below the threshold is dropped.\"\"\"
+
+    thresholded = True
+
+    def route(self, output):
+        return np.full(np.shape(output)[:-1], Route.ADD, np.int8)
+
+    def admit(self, above, contribution, low, high):
+        half = contribution / 2
+        if self.threshold is None:
+            return half
+        return np.where(np.abs(half) < self.threshold, 0.0, half).astype(contribution.dtype)
+"""
+
+
+def test_a_plugin_combiner_trains_evaluates_draws_its_threshold_figure_and_exports(tmp_path, tiny):
+    plugin, run = tmp_path / "halving.py", tmp_path / "run"
+    plugin.write_text(HALVING)
+
+    def cli(*args):
+        done = subprocess.run([sys.executable, "-m", "layered.cli", *map(str, args)], capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    cli("train", "recipes/pendulum/tla-c.toml", "combine.kind=test-halving", *tiny, "--steps", 300, "--out", run,
+        "--plugin", plugin)
+    cli("eval", run, "--threshold-sweep", "0,0.5", "--episodes", 1)
+    assert (run / "eval" / "threshold-sweep.png").exists()
+    printed = cli("export", run, "--episodes", 1)
+    assert "the same executed actions" in printed
+    out = run / "export-torchscript"
+    assert (out / "plugins" / "halving.py").read_text() == HALVING
+    script = ("import sys; sys.path.insert(0, '.'); sys.modules['layered'] = None; "
+              "from layered_runtime import load_stack; import numpy as np; s = load_stack('.'); s.reset(); "
+              "print(s.rules.layers[0].combiner.__class__.__name__, [s.step(np.ones(3, np.float32)) for _ in range(3)])")
+    done = subprocess.run([sys.executable, "-I", "-c", script], cwd=out, capture_output=True, text=True, check=True)
+    assert done.stdout.startswith("Halving")
 
 
 def test_export_command_on_a_trained_run(tmp_path, tiny, capsys):
@@ -75,7 +115,8 @@ def test_export_command_on_a_trained_run(tmp_path, tiny, capsys):
     capsys.readouterr()
     assert main(["export", str(run), "--episodes", "1"]) == 0
     printed = capsys.readouterr().out
-    assert "the same executed actions (largest difference 0)" in printed
+    assert "the same executed actions (largest difference 0," in printed
     check = json.loads((run / "export-torchscript" / "check.json").read_text())
-    assert check["steps"] == 200 and check["exported"]["median_us"] > 0
+    assert check["steps"] == 200 and check["exported"]["median_us"] > 0 and check["matches"]
+    assert check["exported_return"] == check["library_return"]
     assert np.isfinite(check["library"]["p99_us"])

@@ -1,7 +1,7 @@
 """Training orders give the phases the paper describes, for any depth."""
 
 from layered.orders import ORDERS, Phase
-from layered.recipe import PhaseConfig
+from layered.schema import PhaseConfig
 
 NAMES = ["slow", "mid", "fast"]
 

@@ -9,7 +9,6 @@ import tomli_w
 
 from layered import RecipeError, load_recipe
 from layered.recipe import resolved
-from layered.stack import combiner_kind
 
 RECIPES = Path(__file__).parent.parent / "recipes"
 TLA_C = RECIPES / "pendulum" / "tla-c.toml"
@@ -32,7 +31,7 @@ def test_shipped_recipes_have_the_papers_settings():
     assert r.train.order == "slow-to-fast" and r.train.steps_per_phase == 30000 and r.eval.every == 2500
     assert r.layers[1].sees == ["obs", "slow"] and r.combine.eval_threshold == 0.3
     o = load_recipe(RECIPES / "pendulum" / "tla-o.toml")
-    assert combiner_kind(o, 0) == "gate" and combiner_kind(o, 1) is None and o.train.order == "fast-to-slow"
+    assert o.combiner_kind(0) == "gate" and o.combiner_kind(1) is None and o.train.order == "fast-to-slow"
     assert len(load_recipe(RECIPES / "pendulum" / "td3.toml").layers) == 1
 
 

@@ -11,7 +11,7 @@ from gymnasium.spaces import Box
 
 from layered import load_recipe, make_aec_env
 from layered.buffer import Transition
-from layered.combiners import COMBINERS
+from layered.combiners import COMBINERS, Gate
 from layered.envs import FAMILIES
 from layered.learners import LEARNERS
 from layered.orders import ORDERS
@@ -20,7 +20,7 @@ from layered.trainer import phases_of, train
 
 SMALL = ["learner.hidden=[16, 16]", "learner.batch_size=16", "train.warmup=20",
          "eval.episodes=1", "eval.fresh_episodes=2"]
-LAYOUTS = [OutputLayout(2), OutputLayout(2, gate_dims=1), OutputLayout(2, max_repeat=3)]
+LAYOUTS = [OutputLayout(2), OutputLayout(2, gate_dims=1, gate=Gate.encoding), OutputLayout(2, max_repeat=3)]
 
 
 def make_learner(name: str, seed: int):
@@ -36,7 +36,7 @@ def make_learner(name: str, seed: int):
     rng = np.random.default_rng(0)
     for _ in range(32):
         o = rng.uniform(-1, 1, 3).astype(np.float32)
-        path = ((o, 0.5),) if layout.repeats else ()
+        path = ((o, 0.5, 1),) if layout.repeats else ()
         learner.observe(Transition(o, learner.random_action(), float(rng.normal()), o, False, 0.99, path))
     return learner
 

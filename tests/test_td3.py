@@ -7,6 +7,7 @@ import pytest
 import torch
 from gymnasium.spaces import Box
 
+from layered.combiners import Gate
 from layered.buffer import Transition
 from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from layered.learners.td3 import TD3, TD3Config
@@ -100,7 +101,7 @@ def test_temporl_learns_from_every_period_and_every_partial_repetition():
     config = TempoRLConfig(hidden=(16,), batch_size=4, gamma=0.5)
     learner = TempoRL(OBS, space, OutputLayout(1, max_repeat=4), config, seed=0)
     states = [np.full(3, k, np.float32) for k in range(4)]
-    path = tuple((states[k + 1], float(k + 1)) for k in range(3))  # rewards 1, 2, 3
+    path = tuple((states[k + 1], float(k + 1), 1) for k in range(3))  # rewards 1, 2, 3; one discount unit each
     learner.observe(Transition(states[0], np.array([0.3, 3.0], np.float32), 6.0, states[3], True, 0.5, path))
     assert len(learner.td3.buffer) == 3 and len(learner.choice.buffer) == 6  # 3 periods; 3 + 2 + 1 segments
     sb = learner.choice.buffer.state_dict()
@@ -118,13 +119,31 @@ def test_temporl_learns_from_every_period_and_every_partial_repetition():
     assert learner.update() is not None
 
 
+def test_temporl_discounts_by_the_units_the_stack_gave_each_period():
+    """train.discount = "step" at period 2: periods of 2, 2 and (the episode ending) 1 base steps."""
+    from layered.learners.temporl import TempoRL, TempoRLConfig
+
+    space = Box(np.array([-2.0, 1.0], np.float32), np.array([2.0, 4.0], np.float32))
+    learner = TempoRL(OBS, space, OutputLayout(1, max_repeat=4), TempoRLConfig(hidden=(16,), gamma=0.5), seed=0)
+    states = [np.full(3, k, np.float32) for k in range(4)]
+    path = ((states[1], 1.0, 2), (states[2], 2.0, 2), (states[3], 3.0, 1))
+    learner.observe(Transition(states[0], np.array([0.3, 3.0], np.float32), 6.0, states[3], True, 0.5**5, path))
+    td3 = learner.td3.buffer.state_dict()["discount"][:, 0].tolist()
+    assert td3 == [0.25, 0.25, 0.5]  # gamma**2 per full period, gamma for the last step
+    sb = learner.choice.buffer.state_dict()
+    rows = {(int(sb["obs"][i, 0]), int(sb["action"][i, 1])): (float(sb["reward"][i, 0]), float(sb["discount"][i, 0]))
+            for i in range(6)}
+    assert rows[(0, 2)] == (1 + 0.25 * 2 + 0.0625 * 3, 0.5**5)
+    assert rows[(1, 1)] == (2 + 0.25 * 3, 0.125)
+
+
 def test_gate_learner_proposes_an_action_and_a_gate_and_learns_which_pays():
     """Committing pays 1, deferring 0, with no future: the greedy gate must learn to commit."""
     from layered.learners.gate_td3 import GateTD3, GateTD3Config
 
     space = Box(np.array([-2.0, -1.0], np.float32), np.array([2.0, 1.0], np.float32))
     config = GateTD3Config(hidden=(32,), batch_size=64, lr=3e-3)
-    learner = GateTD3(OBS, space, OutputLayout(1, gate_dims=1), config, seed=0)
+    learner = GateTD3(OBS, space, OutputLayout(1, gate_dims=1, gate=Gate.encoding), config, seed=0)
     obs = np.zeros(3, np.float32)
     for _ in range(400):
         a = learner.random_action()
@@ -143,7 +162,7 @@ def test_gate_bootstraps_from_the_chosen_head_of_the_target_critic(head):
 
     space = Box(np.array([-2.0, -1.0], np.float32), np.array([2.0, 1.0], np.float32))
     config = GateTD3Config(hidden=(8,), gate_target=head)
-    learner = GateTD3(OBS, space, OutputLayout(1, gate_dims=1), config, seed=0)
+    learner = GateTD3(OBS, space, OutputLayout(1, gate_dims=1, gate=Gate.encoding), config, seed=0)
     obs = torch.as_tensor(np.random.default_rng(0).uniform(-1, 1, (32, 3)), dtype=torch.float32)
     with torch.no_grad():
         q1, q2 = learner.td3.critic_target(obs, learner.td3.actor_target(obs))

@@ -44,12 +44,13 @@ class GateTD3(TD3WithChoice):
 
     @classmethod
     def unfit(cls, layout: OutputLayout) -> str | None:
-        if layout.gate_dims != 1 or layout.repeats:
+        if layout.gate is None or layout.gate_dims != 1 or layout.repeats:
             return "it needs a gate layer (combine = 'gate', above another layer) that does not repeat"
         return None
 
     def encode(self, index: int) -> float:
-        return 1.0 if index == 1 else -1.0
+        assert self.layout.gate is not None, "unfit refuses a layer without a gate"
+        return self.layout.gate.value(commit=index == 1)
 
     def epsilon(self) -> float:
         return self.config.gate_epsilon
@@ -57,4 +58,5 @@ class GateTD3(TD3WithChoice):
     def observe(self, transition: Transition) -> None:
         proposed = transition._replace(action=transition.action[:-1], path=())
         self.td3.observe(proposed)
-        self.choice.add(proposed, 1 if transition.action[-1] > 0 else 0)
+        assert self.layout.gate is not None, "unfit refuses a layer without a gate"
+        self.choice.add(proposed, 1 if self.layout.gate.commits(transition.action[-1]) else 0)

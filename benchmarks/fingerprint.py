@@ -1,0 +1,68 @@
+"""A fingerprint of what training produces: short runs of every kind of stack, and a SHA-256 of each
+file they write that a change to the code must leave as it is.
+
+    python benchmarks/fingerprint.py runs/fingerprint-a      # trains, then prints one hash per file
+    python benchmarks/fingerprint.py runs/fingerprint-b
+    diff <(python benchmarks/fingerprint.py runs/fingerprint-a --hash-only) \
+         <(python benchmarks/fingerprint.py runs/fingerprint-b --hash-only)
+
+A refactoring of the stack's rules, the loop or the learners is behaviour-preserving when the two
+listings match on one machine: metrics.csv, episodes.csv, results.json and every checkpoint. Floating
+point differs between machines, so the hashes are compared between runs on the same one, never stored.
+Each run is small (networks of 32-32, 1500 steps per phase) and one torch thread is used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import sys
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+SMALL = ["learner.hidden=[32, 32]", "learner.batch_size=64", "train.warmup=100", "eval.every=500",
+         "eval.episodes=2", "eval.fresh_episodes=2"]
+RUNS = {  # name: recipe, overrides beyond SMALL
+    "tla-c": ("pendulum/tla-c.toml", []),
+    "tla-o": ("pendulum/tla-o.toml", []),
+    "temporl": ("pendulum/temporl.toml", []),
+    "joint-gate": ("pendulum/tla-joint.toml", ["layers.slow.warmup=40"]),
+    "realtime-idp": ("inverted-double-pendulum/tla-realtime.toml", []),
+    "mixed-3": ("research/pendulum-gate-over-residual-3.toml", []),
+    "residual-3": ("research/pendulum-residual-3.toml", []),
+}
+STEPS = 1500
+FILES = ("metrics.csv", "episodes.csv", "results.json")
+
+
+def digests(run_dir: Path) -> dict[str, str]:
+    """SHA-256 of each file of the run that the code's behaviour determines."""
+    paths = [run_dir / f for f in FILES] + sorted((run_dir / "checkpoints").glob("*.pt"))
+    return {str(p.relative_to(run_dir)): hashlib.sha256(p.read_bytes()).hexdigest()[:16] for p in paths}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", type=Path, help="folder for the runs (one sub-folder per run)")
+    parser.add_argument("--hash-only", action="store_true", help="hash the runs already in OUT; train nothing")
+    parser.add_argument("--only", nargs="*", help="names of the runs to make (default: all)")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    from layered import load_recipe, train
+
+    for name, (recipe, extra) in RUNS.items():
+        if args.only and name not in args.only:
+            continue
+        run_dir = args.out / name
+        if not args.hash_only:
+            train(load_recipe(ROOT / "recipes" / recipe, [*SMALL, *extra]), run_dir, max_steps=STEPS,
+                  progress=False, label=name)
+        for file, digest in digests(run_dir).items():
+            print(f"{name}/{file} {digest}")
+        sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()

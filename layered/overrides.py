@@ -1,0 +1,57 @@
+"""Command-line overrides of a recipe: `key=value`, with layers and phases named or indexed."""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from typing import Any
+
+from layered.schema import RecipeError, key_path
+
+
+_PATH_PART = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
+
+
+def _parse_value(text: str) -> Any:
+    """A TOML value (`3`, `1e-3`, `true`, `[1, 2]`, `"x"`); anything else is taken as a string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_override(data: dict[str, Any], override: str) -> None:
+    """Set one `key=value` override in the raw recipe table; layers may be named or indexed."""
+    path, sep, text = override.partition("=")
+    if not sep or not path.strip():
+        raise RecipeError("command line", [(override, "an override is written key=value, e.g. train.seed=3")])
+    parts = [m.group(1) or int(m.group(2)) for m in _PATH_PART.finditer(path.strip())]
+    parts = [int(p) if isinstance(p, str) and p.isdigit() else p for p in parts]
+    node: Any = data
+    for depth, part in enumerate(parts[:-1]):
+        node = _descend(node, part, parts[: depth + 1], override)
+    last = parts[-1]
+    if isinstance(node, list):
+        node[_list_index(node, last, override)] = _parse_value(text)
+    else:
+        node[last] = _parse_value(text)
+
+
+def _descend(node: Any, part: str | int, seen: list[str | int], override: str) -> Any:
+    if isinstance(node, list):
+        return node[_list_index(node, part, override)]
+    if not isinstance(node, dict):
+        raise RecipeError("command line", [(override, f"{key_path(seen[:-1])} is a value, not a table")])
+    return node.setdefault(str(part), {})
+
+
+def _list_index(items: list[Any], part: str | int, override: str) -> int:
+    """Index of a list entry given by position or, for layers and phases, by name."""
+    if isinstance(part, int):
+        if not -len(items) <= part < len(items):
+            raise RecipeError("command line", [(override, f"index {part} is out of range (there are {len(items)})")])
+        return part
+    for i, item in enumerate(items):
+        if isinstance(item, dict) and item.get("name") == part:
+            return i
+    raise RecipeError("command line", [(override, f"no entry named {part!r}")])
