@@ -38,8 +38,8 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         "name": "layered_v0", "is_parallelizable": False, "render_modes": ["rgb_array"],
     }
 
-    def __init__(self, base: gym.Env, stack: Stack, record: bool = False) -> None:
-        """With `record`, every base step of the current episode is kept in `trace`."""
+    def __init__(self, base: gym.Env, stack: Stack, keep_trace: bool = False) -> None:
+        """With `keep_trace`, every base step of the current episode is kept in `trace`."""
         super().__init__()
         self.base = base
         self.stack = stack
@@ -48,14 +48,13 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self._index = {stack.layers[i].name: i for i in stack.active}
         self._observation_spaces = {n: stack.observation_spaces[i] for n, i in self._index.items()}
         self._action_spaces = {n: stack.layers[i].action_space for n, i in self._index.items()}
-        self.record = record
+        self.keep_trace = keep_trace
         self.trace: list[StepRecord] = []
         self.watcher: Watcher | None = None
         self._obs: np.ndarray = np.zeros(base.observation_space.shape or (0,), np.float32)
         self._decided: list[str] = []
         self.episode_return = 0.0
         self.episode_steps = 0
-        self.advanced = 0  # base steps executed by the latest `step` call
 
     def observation_space(self, agent: str) -> Box:
         return self._observation_spaces[agent]
@@ -78,7 +77,6 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self.trace = []
         self.episode_return = 0.0
         self.episode_steps = 0
-        self.advanced = 0
         first = self.stack.next_due(0)
         assert first is not None, "every present layer decides at step 0"
         self.agent_selection = self.stack.layers[first].name
@@ -86,11 +84,13 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
     def observe(self, agent: str) -> np.ndarray:
         return self.stack.observation(self._index[agent], self._obs)
 
-    def step(self, action: np.ndarray | None) -> None:
+    def step(self, action: np.ndarray | None) -> int:  # type: ignore[override]
+        """The selected layer's decision; the environment then runs until some layer is due or the
+        episode ends. Returns the number of base steps it ran (PettingZoo ignores it; training counts it)."""
         agent = self.agent_selection
         if self.terminations[agent] or self.truncations[agent]:
             self._was_dead_step(action)
-            return
+            return 0
         if action is None:
             raise ValueError(f"layer {agent!r} is due and must be given an action, not None")
         i = self._index[agent]
@@ -99,12 +99,12 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self.rewards = dict.fromkeys(self.agents, 0.0)
         self.stack.decide(i, self.observe(agent), action)
         self._decided.append(agent)
-        self.advanced = 0
+        advanced = 0
         due = self.stack.next_due(i + 1)
         ended = False
         while due is None and not ended:
             ended = self._base_step()
-            self.advanced += 1
+            advanced += 1
             due = None if ended else self.stack.next_due(0)
         self._accumulate_rewards()
         if ended:
@@ -115,6 +115,7 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
             assert due is not None
             self.agent_selection = self.stack.layers[due].name
             self._complete(self.agent_selection)
+        return advanced
 
     def _complete(self, agent: str) -> None:
         """It is `agent`'s turn: hand it the transition completed since its latest decision."""
@@ -136,12 +137,12 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         for i, r in rewards.items():
             self.rewards[self.stack.layers[i].name] += r
         self.stack.tick()
-        self.stack.record(rewards, self._obs, ended=terminated or truncated)
-        if self.record or frame is not None:
+        self.stack.accrue(rewards, self._obs, ended=terminated or truncated)
+        if self.keep_trace or frame is not None:
             # copies: the stack reuses its held arrays, and an env may reuse its observation's
             parts = {self.stack.layers[i].name: c.copy() for i, c in composition.contributions.items()}
             executed = StepRecord(composition.action, float(reward), tuple(self._decided), parts, np.array(obs))
-            if self.record:
+            if self.keep_trace:
                 self.trace.append(executed)
             if frame is not None and self.watcher is not None:
                 self.watcher(self.episode_steps, frame, executed)
@@ -168,7 +169,7 @@ def make_aec_env(
     active: list[str] | None = None,
     evaluation: bool = False,
     threshold: float | None = None,
-    record: bool = False,
+    keep_trace: bool = False,
     render_mode: str | None = None,
 ) -> LayeredEnv:
     """The AEC env of a recipe's stack (all layers present unless `active` names some), reset with `seed`."""
@@ -176,6 +177,6 @@ def make_aec_env(
     obs_space, action_space = base.observation_space, base.action_space
     assert isinstance(obs_space, Box) and isinstance(action_space, Box)
     stack = Stack(recipe, obs_space, action_space, active=active, evaluation=evaluation, threshold=threshold)
-    env = LayeredEnv(base, stack, record=record)
+    env = LayeredEnv(base, stack, keep_trace=keep_trace)
     env.reset(seed=seed)
     return env

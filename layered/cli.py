@@ -219,7 +219,7 @@ def _evaluate_once(args: argparse.Namespace, run: Any, episodes: int) -> None:
     from layered.agents import make_aec_env
     from layered.evaluate import evaluate
 
-    env = make_aec_env(run.recipe, active=run.active, evaluation=True, threshold=args.threshold, record=True)
+    env = make_aec_env(run.recipe, active=run.active, evaluation=True, threshold=args.threshold, keep_trace=True)
     result = evaluate(env, run.learners, episodes, run.seed, progress=True)
     threshold = args.threshold if args.threshold is not None else "recipe"
     row = {"phase": "eval", "learn": [], "active": run.active, "auc": None, "threshold": threshold,
@@ -251,7 +251,8 @@ def _print_sweep(rows: list[dict[str, Any]], run: Any) -> None:
 def _export(args: argparse.Namespace) -> int:
     from layered.export import export_stack
     from layered.latency import compare
-    from layered.trainer import load_learners, phases_of, run_plugins
+    from layered.learner_set import load_learners
+    from layered.trainer import phases_of, run_plugins
 
     if args.threshold is not None and args.threshold < 0:
         return _fail("--threshold must be >= 0")

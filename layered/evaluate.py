@@ -28,12 +28,12 @@ def evaluate(
     env: LayeredEnv, learners: Mapping[str, Learner], episodes: int, seed: int, progress: bool = False
 ) -> Evaluation:
     """Mean measures over `episodes` episodes; the env is seeded once, so every call sees the same starts."""
-    assert env.record, "evaluation needs an env made with record=True"
+    assert env.keep_trace, "evaluation needs an env made with keep_trace=True"
     runs = tqdm(range(episodes), desc="evaluating", unit="episode", disable=not progress)
     return summarise([run_episode(env, learners, seed if k == 0 else None) for k in runs])
 
 
-def threshold_sweep(
+def evaluate_thresholds(
     recipe: Recipe, learners: Mapping[str, Learner], active: list[str], thresholds: Sequence[float],
     episodes: int, seed: int,
 ) -> list[dict[str, Any]]:
@@ -41,7 +41,7 @@ def threshold_sweep(
     frequency against the threshold."""
     rows = []
     for threshold in tqdm(thresholds, desc="threshold sweep", unit="threshold"):
-        env = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, record=True)
+        env = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, keep_trace=True)
         rows.append({"threshold": threshold, **evaluate(env, learners, episodes, seed).row()})
         env.close()
     return rows
@@ -85,7 +85,7 @@ def states_where_layer_acts(
     """The steps of one evaluation episode at which `layer` changed the action, and rendered frames
     of up to `count` of them whose observations differ most. The episode is played twice (it is
     deterministic given the seed): once to find the states, once to render them."""
-    env = make_aec_env(recipe, active=active, evaluation=True, record=True, render_mode="rgb_array")
+    env = make_aec_env(recipe, active=active, evaluation=True, keep_trace=True, render_mode="rgb_array")
     run_episode(env, learners, seed)
     acting = [t for t, step in enumerate(env.trace) if layer in step.acted]
     shots = _Shots({acting[k] for k in distinct_states([env.trace[t].obs for t in acting], count)})

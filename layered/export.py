@@ -99,8 +99,8 @@ def export_stack(recipe: Recipe, learners: Mapping[str, Learner], active: list[s
     (out / RUNTIME_PACKAGE).mkdir(exist_ok=True)
     for file, source in RUNTIME_MODULES.items():
         shutil.copyfile(inspect.getfile(source), out / RUNTIME_PACKAGE / file)
-    for source in sources:
+    for plugin in sources:
         (out / "plugins").mkdir(exist_ok=True)
-        shutil.copyfile(source, out / "plugins" / source.name)
+        shutil.copyfile(plugin, out / "plugins" / plugin.name)
     (out / "stack.json").write_text(json.dumps(spec, indent=2) + "\n")
     return out

@@ -123,7 +123,7 @@ def compare(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], 
     """Play `episodes` episodes (seeds seed, seed + 1, ...), and more until `min_steps` base steps,
     with the library; replay each one's observations through the stack exported to `exported` and
     compare the actions; play each closed loop with the exported stack too; time both per base step."""
-    library = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, record=True)
+    library = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, keep_trace=True)
     timer = _StepTimer(library.base)
     library.base = timer
     stack = load_stack(exported)

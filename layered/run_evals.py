@@ -42,7 +42,8 @@ class TrainedRun:
 def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | None = None) -> TrainedRun:
     """The run in `run_dir` with each phase's `final` or `best` weights (default: its train.select),
     after importing the plugins it was trained with and `plugins`."""
-    from layered.trainer import load_learners, phases_of, run_plugins
+    from layered.learner_set import load_learners
+    from layered.trainer import phases_of, run_plugins
 
     load_plugins(run_plugins(run_dir) + list(plugins or []))  # refuses a directory that holds no run
     recipe = load_recipe(run_dir / "recipe.toml")
@@ -57,9 +58,10 @@ def has_threshold(recipe: Recipe) -> bool:
 
 def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None) -> list[dict[str, Any]]:
     """Evaluate at each threshold and write eval/threshold-sweep.csv; its rows."""
-    from layered.evaluate import threshold_sweep as sweep
+    from layered.evaluate import evaluate_thresholds
 
-    rows = sweep(run.recipe, run.learners, run.active, thresholds, episodes or run.recipe.eval.episodes, run.seed)
+    episodes = episodes or run.recipe.eval.episodes
+    rows = evaluate_thresholds(run.recipe, run.learners, run.active, thresholds, episodes, run.seed)
     with (run.eval_dir / SWEEP_FILE).open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()

@@ -20,12 +20,9 @@ from layered.learners import Learner, Losses
 from layered.metrics import Evaluation
 
 
-@dataclass(frozen=True)
-class UpdateStats:
-    """One update's losses read back to the host: what the loop averages per evaluation and checkpoints."""
-
-    critic_loss: float
-    actor_loss: float | None
+UpdateStats = dict[str, float | None]
+"""One update's losses read back to the host, as `<name>_loss` for each of the learner's loss names (None
+where the update did not compute it): what the loop averages per evaluation and checkpoints."""
 
 
 @dataclass
@@ -92,7 +89,6 @@ class LoopState:
         """The state `to_json` wrote."""
         data = json.loads(text)
         data["curve"] = [(step, Evaluation(**evaluation)) for step, evaluation in data["curve"]]
-        data["losses"] = {name: [UpdateStats(**s) for s in stats] for name, stats in data["losses"].items()}
         return cls(**data, pending={name: [] for name in data["losses"]})
 
 
@@ -116,7 +112,7 @@ def recipe_differences(saved: dict[str, Any], current: dict[str, Any], prefix: s
     return out
 
 
-def save_run(path: Path, state: LoopState, learners: dict[str, Learner], resolved_recipe: dict[str, Any],
+def save_state(path: Path, state: LoopState, learners: dict[str, Learner], resolved_recipe: dict[str, Any],
              max_steps: int | None) -> None:
     """Checkpoint the whole training state at an episode boundary; the previous checkpoint is kept."""
     save_checkpoint(path, "run", {
@@ -126,7 +122,7 @@ def save_run(path: Path, state: LoopState, learners: dict[str, Learner], resolve
     }, keep_previous=True)
 
 
-def load_run(path: Path, learners: dict[str, Learner], resolved_recipe: dict[str, Any],
+def load_state(path: Path, learners: dict[str, Learner], resolved_recipe: dict[str, Any],
              max_steps: int | None) -> LoopState | None:
     """Restore the newest usable checkpoint into `learners`; its loop state, or None if there is none.
 

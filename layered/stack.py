@@ -190,7 +190,7 @@ class Stack:
         shares = self.rules.layer_rewards(np.array([reward]), composition.batch)
         return {i: float(r[0]) for i, r in shares.items()}
 
-    def record(self, rewards: dict[int, float], obs: np.ndarray, ended: bool) -> None:
+    def accrue(self, rewards: dict[int, float], obs: np.ndarray, ended: bool) -> None:
         """Book the base step just executed (and ticked past) into each deciding layer's transition
         under way: one more step elapsed and, for a layer that repeats, (its observation, its
         reward, the discount units of the period) at the end of each of its periods (or of the

@@ -17,7 +17,7 @@ METHOD_ORDER = ["td3", "temporl", "tla-o", "tla-c", "td3-realtime", "tla-realtim
 
 
 @dataclass(frozen=True)
-class Run:
+class FinishedRun:
     """One finished run: its setup, seed, final evaluation, and its evaluation curves over the last
     phase and over the whole run (environment steps counted from the start of training)."""
 
@@ -35,7 +35,7 @@ class Run:
         return self.label.rsplit("/", 1)[-1]
 
 
-def load_run(path: Path) -> Run:
+def load_finished_run(path: Path) -> FinishedRun:
     """The run in directory `path`; raises FileNotFoundError naming what is missing."""
     results_file = path / "results.json"
     if not results_file.exists():
@@ -48,7 +48,7 @@ def load_run(path: Path) -> Run:
         rows = list(csv.DictReader(f))
     curve = tuple((int(r["step"]), float(r["return_mean"])) for r in rows if r["phase"] == last_phase)
     label = results.get("label") or re.sub(r"-s\d+(-\d{8}-\d{6})?$", "", path.name)
-    return Run(
+    return FinishedRun(
         path=path, env=results["env"], label=label, seed=int(results.get("seed", recipe["train"]["seed"])),
         realtime=any(layer.get("delay", 0) > 0 for layer in recipe["layers"]),
         final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)},
@@ -76,7 +76,7 @@ class Setup:
 
     env: str
     label: str
-    runs: tuple[Run, ...]
+    runs: tuple[FinishedRun, ...]
 
     @property
     def method(self) -> str:
@@ -106,9 +106,9 @@ class Setup:
             returns.max(axis=0)
 
 
-def group(runs: Iterable[Run]) -> list[Setup]:
+def group(runs: Iterable[FinishedRun]) -> list[Setup]:
     """Runs grouped by (environment, method), in the paper's method order."""
-    by_key: dict[tuple[str, str], list[Run]] = {}
+    by_key: dict[tuple[str, str], list[FinishedRun]] = {}
     for run in runs:
         by_key.setdefault((run.env, run.method), []).append(run)
     setups = [Setup(env, rs[0].label, tuple(sorted(rs, key=lambda r: r.seed))) for (env, _), rs in by_key.items()]
@@ -120,12 +120,12 @@ def group(runs: Iterable[Run]) -> list[Setup]:
     return sorted(setups, key=order)
 
 
-def find_runs(paths: Sequence[Path]) -> list[Run]:
+def find_runs(paths: Sequence[Path]) -> list[FinishedRun]:
     """Every finished run in `paths`, each a run directory or a folder holding run directories."""
-    found: list[Run] = []
+    found: list[FinishedRun] = []
     for path in paths:
         dirs = [path] if (path / "results.json").exists() else sorted(p.parent for p in path.rglob("results.json"))
         if not dirs:
             raise FileNotFoundError(f"{path}: no finished runs (no results.json) in it")
-        found += [load_run(d) for d in dirs]
+        found += [load_finished_run(d) for d in dirs]
     return found

@@ -9,7 +9,6 @@ and stop.
 from __future__ import annotations
 
 import copy
-import json
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -21,10 +20,10 @@ import tomli_w
 import torch
 
 from layered.agents import LayeredEnv, make_aec_env
-from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, write_atomically
+from layered.checkpoint import save_checkpoint
 from layered.evaluate import evaluate
 from layered.interrupt import StopRequest, Stopped
-from layered.learners import LEARNERS, Learner
+from layered.learners import Learner
 from layered.events import EventLog
 from layered.events import available as events_available
 from layered.logs import CsvLog
@@ -32,11 +31,11 @@ from layered.metrics import Evaluation, normalised_auc
 from layered.orders import ORDERS, Phase
 from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
-from layered.report import plot_curves, results_table
 from layered.rundir import RunDirError, RunInfo, has_progress, prepare_run_dir, read_run_info
-from layered.runstate import LoopState, UpdateStats, load_run, save_run
+from layered.learner_set import build_learners, keep_start_weights, start_from_weights
+from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
+from layered.runstate import LoopState, load_state, save_state
 
-EPISODE_FIELDS = ["phase", "step", "return", "length"]
 FRESH_MEASURES = ("return_mean", "return_std", "repetition", "decisions", "jerk")
 
 
@@ -56,7 +55,7 @@ class PhaseResult:
 
 
 @dataclass(frozen=True)
-class Run:
+class Training:
     """What stays fixed while a run trains: its recipe, learners, logs and where it checkpoints."""
 
     recipe: Recipe
@@ -72,7 +71,7 @@ class Run:
     def save(self, state: LoopState) -> None:
         """Checkpoint the whole training state, with how much of each log it covers."""
         state.log_sizes = {"metrics": self.metrics.size(), "episodes": self.episodes.size()}
-        save_run(self.checkpoint, state, self.learners, resolved(self.recipe), self.max_steps)
+        save_state(self.checkpoint, state, self.learners, resolved(self.recipe), self.max_steps)
 
 
 def phases_of(recipe: Recipe) -> list[Phase]:
@@ -88,62 +87,6 @@ def phase_budget(recipe: Recipe, phase: Phase, max_steps: int | None) -> int:
 def checkpoint_interval(recipe: Recipe) -> int:
     """Environment steps between checkpoints (each taken at the next episode end): by default, one per evaluation."""
     return recipe.train.checkpoint_every or recipe.eval.every
-
-
-def build_learners(recipe: Recipe, device: str | None = None) -> dict[str, Learner]:
-    """One new learner per layer, each with its own seed, on the spaces of the whole stack;
-    `device` replaces the recipe's `device` setting of the learners that have one."""
-    torch.manual_seed(recipe.train.seed)
-    env = make_aec_env(recipe)
-    learners = {}
-    for i, layer in enumerate(recipe.layers):
-        config = recipe.learner_config(i)
-        if device is not None and "device" in type(config).model_fields:
-            config = config.model_copy(update={"device": device})
-        space = env.action_space(layer.name)
-        layout = recipe.output_layout(i, env.stack.action_dim)
-        seed = recipe.train.seed * 1000 + i
-        learners[layer.name] = LEARNERS.get(config.kind)(env.observation_space(layer.name), space, layout, config, seed)
-    env.close()
-    return learners
-
-
-def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None) -> dict[str, Learner]:
-    """The learners of a finished run, restored from its checkpoints: each layer's `final` or `best`
-    weights of the last phase it learned in (default: the recipe's `train.select`). They act on the
-    CPU, fastest for one observation at a time, so a run trained on a GPU evaluates anywhere."""
-    learners = build_learners(recipe, device="cpu")
-    suffix = {"final": ".pt", "best": ".best.pt"}[weights or recipe.train.select]
-    for name, learner in learners.items():
-        learner.load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}{suffix}", name))
-    return learners
-
-
-def start_from_weights(recipe: Recipe, learners: dict[str, Learner]) -> None:
-    """Load each layer's `weights` checkpoint into its learner; a file that is missing, unreadable,
-    of another layer or of other network sizes is refused, naming the layer."""
-    problems = []
-    for i, layer in enumerate(recipe.layers):
-        if layer.weights is None:
-            continue
-        try:
-            learners[layer.name].load_state_dict(load_checkpoint(Path(layer.weights), layer.name))
-        except CheckpointError as e:
-            problems.append((f"layers[{i}].weights", str(e)))
-        except (RuntimeError, KeyError, ValueError) as e:
-            problems.append((f"layers[{i}].weights", f"{layer.weights}: does not fit layer {layer.name!r}'s "
-                             f"learner ({str(e).strip().splitlines()[0]})"))
-    if problems:
-        raise RecipeError("recipe", problems)
-
-
-def keep_start_weights(recipe: Recipe, learners: dict[str, Learner], folder: Path) -> None:
-    """Copy the start weights into the run's checkpoints as the layer's final and best, so that the
-    run evaluates without the original file (a phase that trains the layer replaces them)."""
-    for layer in recipe.layers:
-        if layer.weights is not None:
-            for suffix in (".pt", ".best.pt"):
-                save_checkpoint(folder / f"{layer.name}{suffix}", layer.name, learners[layer.name].state_dict())
 
 
 def warmup_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
@@ -177,14 +120,9 @@ def train(
     out = Path(out_dir)
     for warning in warmup_warnings(recipe, max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
-    settings = [recipe.learner_config(i).model_dump() for i in range(len(recipe.layers))]
-    if not torch.cuda.is_available():
-        if any(c.get("device") == "cuda" for c in settings):
-            raise RecipeError("recipe", [("learner.device", "'cuda' asked for, but torch sees no CUDA GPU here "
-                                          "(use 'cpu' or 'auto')")])
-        if any(c.get("compile") == "cudagraphs" for c in settings):
-            raise RecipeError("recipe", [("learner.compile", "'cudagraphs' asked for, but torch sees no CUDA GPU "
-                                          "here (use 'inductor' or 'off')")])
+    unavailable = sorted({p for i in range(len(recipe.layers)) for p in recipe.learner_config(i).unavailable()})
+    if unavailable:
+        raise RecipeError("recipe", unavailable)
     if recipe.log.tensorboard and not events_available():
         raise RecipeError("recipe", [("log.tensorboard", "needs the extra layered[tensorboard]: "
                                       "pip install -e '.[tensorboard]' in the checkout")])
@@ -194,9 +132,9 @@ def train(
         start_from_weights(recipe, learners)  # a bad `weights` file is refused before anything is written
     prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # so that a run killed early resumes
     checkpoint = out / "checkpoints" / "run.pt"
-    state = load_run(checkpoint, learners, resolved(recipe), max_steps)
+    state = load_state(checkpoint, learners, resolved(recipe), max_steps)
     resumed_at = None if state is None else (state.phase, state.step)
-    run = Run(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
+    run = Training(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
               CsvLog(out / "episodes.csv", EPISODE_FIELDS), checkpoint, max_steps, progress, StopRequest(),
               EventLog(out / "tensorboard", resumed_at) if recipe.log.tensorboard else None)
     if state is None:
@@ -216,7 +154,7 @@ def train(
     return state.rows
 
 
-def _train_phases(run: Run, state: LoopState, out: Path) -> None:
+def _train_phases(run: Training, state: LoopState, out: Path) -> None:
     """Train the phases from where `state` stands, checkpointing at the end of each."""
     recipe = run.recipe
     with run.stop.installed():
@@ -231,7 +169,7 @@ def _train_phases(run: Run, state: LoopState, out: Path) -> None:
                 raise Stopped(run.stop.requested, p + 1, 0, out)
 
 
-def _finish_phase(run: Run, state: LoopState, phase: Phase, result: PhaseResult) -> dict[str, Any]:
+def _finish_phase(run: Training, state: LoopState, phase: Phase, result: PhaseResult) -> dict[str, Any]:
     """Save the phase's final and best weights, evaluate both on fresh episodes, and leave the
     learners holding the ones `train.select` hands on; the phase's results row."""
     recipe, learners, folder = run.recipe, run.learners, run.checkpoint.parent
@@ -251,13 +189,13 @@ def _finish_phase(run: Run, state: LoopState, phase: Phase, result: PhaseResult)
     return row
 
 
-def _fresh_evaluation(run: Run, phase: Phase, label: str) -> dict[str, float]:
+def _fresh_evaluation(run: Training, phase: Phase, label: str) -> dict[str, float]:
     """The present layers evaluated on `eval.fresh_episodes` episodes of their own seed, as
     `fresh_<label>_<measure>` (nothing when eval.fresh_episodes is 0)."""
     recipe = run.recipe
     if not recipe.eval.fresh_episodes:
         return {}
-    env = make_aec_env(recipe, active=list(phase.active), evaluation=True, record=True)
+    env = make_aec_env(recipe, active=list(phase.active), evaluation=True, keep_trace=True)
     seed = recipe.train.seed + recipe.eval.fresh_seed_offset
     try:
         result = evaluate(env, run.learners, recipe.eval.fresh_episodes, seed)
@@ -280,7 +218,7 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
     return train(recipe, run_dir, info.max_steps, progress, info.label, resume=True, plugins=info.plugins)
 
 
-def run_phase(run: Run, state: LoopState, phase: Phase, budget: int) -> PhaseResult:
+def run_phase(run: Training, state: LoopState, phase: Phase, budget: int) -> PhaseResult:
     """Train `phase.learn` for `budget` base steps with the other present layers frozen, from `state`.
 
     Learning layers act at random for their first `warmup` decisions, then with
@@ -288,14 +226,14 @@ def run_phase(run: Run, state: LoopState, phase: Phase, budget: int) -> PhaseRes
     """
     recipe = run.recipe
     env = make_aec_env(recipe, active=list(phase.active))
-    eval_env = make_aec_env(recipe, active=list(phase.active), evaluation=True, record=True)
+    eval_env = make_aec_env(recipe, active=list(phase.active), evaluation=True, keep_trace=True)
     bar = Progress(f"phase {state.phase}: {'+'.join(phase.learn)}", budget, state.step, run.progress)
     try:
         if not state.curve:
             _evaluate(run, state, phase, eval_env, bar)
         while state.step < budget:
             _start_episode(env, state, recipe.train.seed)
-            _run_episode(run, state, phase, budget, env, eval_env, bar)
+            _train_episode(run, state, phase, budget, env, eval_env, bar)
             _end_episode(run, env, state)
         if state.curve[-1][0] != state.step:
             _evaluate(run, state, phase, eval_env, bar)
@@ -306,7 +244,7 @@ def run_phase(run: Run, state: LoopState, phase: Phase, budget: int) -> PhaseRes
     return PhaseResult(state.phase, phase, state.step, state.curve[-1][1], _auc(recipe, state.curve))
 
 
-def _run_episode(run: Run, state: LoopState, phase: Phase, budget: int, env: LayeredEnv, eval_env: LayeredEnv,
+def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, env: LayeredEnv, eval_env: LayeredEnv,
                  bar: Progress) -> None:
     """One training episode, or its part until the phase's budget is spent: per decision of a
     layer, store its completed transition, act, step the env, update, log."""
@@ -330,9 +268,9 @@ def _run_episode(run: Run, state: LoopState, phase: Phase, budget: int, env: Lay
             warm = state.decisions[name] < warmups[name]
             action = learner.random_action() if warm else learner.act(obs, explore=True)
         _check_finite(action, "action", name, state)
-        env.step(action)  # step
-        state.step += env.advanced
-        bar.advance(env.advanced)
+        advanced = env.step(action)  # step
+        state.step += advanced
+        bar.advance(advanced)
         if learns:  # update
             state.decisions[name] += 1
             if state.decisions[name] > warmups[name]:
@@ -355,14 +293,14 @@ def _start_episode(env: LayeredEnv, state: LoopState, seed: int) -> None:
     env.reset()
 
 
-def _end_episode(run: Run, env: LayeredEnv, state: LoopState) -> None:
+def _end_episode(run: Training, env: LayeredEnv, state: LoopState) -> None:
     """Log a finished episode; at a boundary past the checkpoint interval, or when asked to stop, checkpoint."""
     if not env.agents:  # the episode ran to its end rather than to the budget
         run.episodes.write({"phase": state.phase, "step": state.step, "return": env.episode_return,
                             "length": env.episode_steps})
     state.episode += 1
     if state.step >= state.next_checkpoint or run.stop.requested:
-        _read_back_losses(state)
+        _read_back_losses(state, run.learners)
         while state.next_checkpoint <= state.step:
             state.next_checkpoint += checkpoint_interval(run.recipe)
         state.env_rng = dict(env.base.unwrapped.np_random.bit_generator.state)
@@ -372,16 +310,16 @@ def _end_episode(run: Run, env: LayeredEnv, state: LoopState) -> None:
         raise Stopped(run.stop.requested, state.phase, state.step, run.checkpoint.parent.parent)
 
 
-def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: LayeredEnv, bar: Progress) -> None:
+def _evaluate(run: Training, state: LoopState, phase: Phase, eval_env: LayeredEnv, bar: Progress) -> None:
     """Evaluate the present layers now and log the row, with each learning layer's mean losses since the last."""
     recipe = run.recipe
-    _read_back_losses(state)
+    _read_back_losses(state, run.learners)
     result = evaluate(eval_env, run.learners, recipe.eval.episodes, recipe.train.seed + recipe.eval.seed_offset)
     state.curve.append((state.step, result))
     if state.best_index() == len(state.curve) - 1:
         state.best = {name: copy.deepcopy(run.learners[name].state_dict()) for name in phase.learn}
     row = {"phase": state.phase, "learn": "+".join(phase.learn), "step": state.step, **result.row(),
-           **mean_losses(state.losses)}
+           **mean_losses(state.losses, run.learners)}
     run.metrics.write(row)
     if run.events is not None:
         run.events.write(row)
@@ -390,15 +328,16 @@ def _evaluate(run: Run, state: LoopState, phase: Phase, eval_env: LayeredEnv, ba
     bar.evaluated(state.step, result)
 
 
-def _read_back_losses(state: LoopState) -> None:
+def _read_back_losses(state: LoopState, learners: dict[str, Learner]) -> None:
     """Read the losses of each layer's updates since the last read-back off its device in one copy,
     and stop on a non-finite one before it is logged or checkpointed."""
     for name, pending in state.pending.items():
         if not pending:
             continue
-        values = iter(torch.stack([t for p in pending for t in p if t is not None]).tolist())
-        stats = [UpdateStats(next(values), None if p.actor is None else next(values)) for p in pending]
-        _check_finite(np.array([[s.critic_loss, s.actor_loss or 0.0] for s in stats]), "loss", name, state)
+        names = type(learners[name]).loss_names
+        values = iter(torch.stack([p[k] for p in pending for k in names if k in p]).tolist())
+        stats = [{f"{k}_loss": next(values) if k in p else None for k in names} for p in pending]
+        _check_finite(np.array([v for s in stats for v in s.values() if v is not None]), "loss", name, state)
         state.losses[name] += stats
         pending.clear()
 
@@ -407,23 +346,6 @@ def _check_finite(values: np.ndarray, what: str, layer: str, state: LoopState) -
     if not np.all(np.isfinite(values)):
         raise Diverged(f"layer {layer!r} met a non-finite {what} in phase {state.phase} at step {state.step}; "
                        "the last checkpoint is intact (lower the learning rate, or check the environment)")
-
-
-def metrics_fields(recipe: Recipe) -> list[str]:
-    """Columns of metrics.csv: every layer's, whether or not it is present in a phase."""
-    names = recipe.layer_names()
-    losses = [f"{kind}_loss_{n}" for n in names for kind in ("critic", "actor")]
-    return ["phase", "learn", "step", *Evaluation.columns(names), *losses]
-
-
-def mean_losses(losses: dict[str, list[UpdateStats]]) -> dict[str, float]:
-    """Mean critic and actor loss of each layer over its given updates (NaN where there are none)."""
-    out = {}
-    for name, stats in losses.items():
-        actor = [s.actor_loss for s in stats if s.actor_loss is not None]
-        out[f"critic_loss_{name}"] = float(np.mean([s.critic_loss for s in stats])) if stats else float("nan")
-        out[f"actor_loss_{name}"] = float(np.mean(actor)) if actor else float("nan")
-    return out
 
 
 def run_plugins(run_dir: Path) -> list[str]:
@@ -444,11 +366,3 @@ def phase_row(r: PhaseResult) -> dict[str, Any]:
         "phase": r.index, "learn": list(r.phase.learn), "active": list(r.phase.active), "steps": r.steps,
         "auc": r.auc, **r.final.row(),
     }
-
-
-def write_results(recipe: Recipe, rows: list[dict[str, Any]], out: Path, label: str) -> None:
-    """results.json (every number of the table), results.md, and the learning-curve plot."""
-    summary = {"env": recipe.env.id, "label": label, "seed": recipe.train.seed, "phases": rows}
-    plot_curves(out / "metrics.csv", out / "curves.png", title=f"{recipe.env.id}: {out.name}")
-    write_atomically(out / "results.md", results_table(rows) + "\n")
-    write_atomically(out / "results.json", json.dumps(summary, indent=2))  # last: it marks the run finished

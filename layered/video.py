@@ -116,7 +116,7 @@ class StripVideo:
 def write_videos(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], out_dir: Path, episodes: int,
                  seed: int, threshold: float | None = None) -> list[tuple[Path, float]]:
     """One MP4 per evaluation episode (seeded as `layered eval` seeds them), with each episode's return."""
-    env = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, record=True,
+    env = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, keep_trace=True,
                        render_mode="rgb_array")
     if np.ndim(env.render()) != 3:
         env.close()

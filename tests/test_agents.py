@@ -77,7 +77,7 @@ def test_episode_end_reports_truncation_to_every_layer_then_removes_them():
 
 def test_same_seed_same_trajectory():
     def rollout(seed):
-        env = make_aec_env(stack_recipe([4, 1], "gate"), seed=seed, record=True)
+        env = make_aec_env(stack_recipe([4, 1], "gate"), seed=seed, keep_trace=True)
         for name in env.agent_iter():
             _, _, term, trunc, _ = env.last()
             space = env.action_space(name)

@@ -7,7 +7,8 @@ from conftest import assert_same_run, train_until_stopped
 from layered import load_recipe
 from layered.learners.td3 import resolve_device
 from layered.recipe import RecipeError
-from layered.trainer import build_learners, resume, train
+from layered.learner_set import build_learners
+from layered.trainer import resume, train
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
 
@@ -27,7 +28,7 @@ def test_cuda_without_a_gpu_is_refused_before_anything_is_written(tmp_path):
 
 def test_a_run_trained_for_a_gpu_evaluates_on_the_cpu(tmp_path, tiny):
     """A run directory whose recipe names cuda loads its learners on the CPU, here as on a laptop."""
-    from layered.trainer import load_learners
+    from layered.learner_set import load_learners
 
     recipe = load_recipe("recipes/pendulum/tla-c.toml", tiny)
     train(recipe, tmp_path, max_steps=200, progress=False)

@@ -13,7 +13,8 @@ from layered import load_recipe
 from layered.cli import main
 from layered.export import export_stack
 from layered.latency import compare
-from layered.trainer import build_learners, phases_of
+from layered.learner_set import build_learners
+from layered.trainer import phases_of
 
 SMALL = ["learner.hidden=[32, 32]"]
 STACKS = {
@@ -104,7 +105,7 @@ def test_a_plugin_combiner_trains_evaluates_draws_its_threshold_figure_and_expor
     assert (out / "plugins" / "halving.py").read_text() == HALVING
     script = ("import sys; sys.path.insert(0, '.'); sys.modules['layered'] = None; "
               "from layered_runtime import load_stack; import numpy as np; s = load_stack('.'); s.reset(); "
-              "print(s.rules.layers[0].combiner.__class__.__name__, [s.step(np.ones(3, np.float32)) for _ in range(3)])")
+              "print(type(s.rules.layers[0].combiner).__name__, [s.step(np.ones(3, np.float32)) for _ in range(3)])")
     done = subprocess.run([sys.executable, "-I", "-c", script], cwd=out, capture_output=True, text=True, check=True)
     assert done.stdout.startswith("Halving")
 

@@ -10,7 +10,7 @@ import pytest
 
 from layered import load_recipe
 from layered.report import _steps_axis
-from layered.summary import Run, Setup, find_runs, group
+from layered.summary import FinishedRun, Setup, find_runs, group
 from layered.trainer import train
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
@@ -20,7 +20,7 @@ TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
 
 def run(label, seed, ret, auc, curve, env="Pendulum-v1", realtime=False):
     final = {"return_mean": ret, "auc": auc, "repetition": 0.5, "decisions": 200.0}
-    return Run(Path(f"/r/{label}-{seed}"), env, label, seed, realtime, final, tuple(curve))
+    return FinishedRun(Path(f"/r/{label}-{seed}"), env, label, seed, realtime, final, tuple(curve))
 
 
 def test_setup_statistics_are_mean_and_population_std_over_seeds():
@@ -59,8 +59,8 @@ def test_bands_are_clipped_to_the_return_bounds():
 def test_seeds_align_evaluation_by_evaluation_at_their_mean_step():
     a = run("p/tla-c", 0, 0, 0, [])
     s = Setup("Pendulum-v1", "p/tla-c", (
-        Run(a.path, a.env, a.label, 0, False, a.final, (), ((0, -900.0), (5001, -400.0), (10002, -200.0))),
-        Run(a.path, a.env, a.label, 1, False, a.final, (), ((0, -700.0), (5003, -200.0)))))
+        FinishedRun(a.path, a.env, a.label, 0, False, a.final, (), ((0, -900.0), (5001, -400.0), (10002, -200.0))),
+        FinishedRun(a.path, a.env, a.label, 1, False, a.final, (), ((0, -700.0), (5003, -200.0)))))
     steps, mean, std, _, _ = s.curve(whole_run=True)
     assert list(steps) == [0, 5002] and list(mean) == [-800, -300] and list(std) == [100, 100]
 

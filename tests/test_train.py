@@ -12,7 +12,9 @@ from layered import load_recipe
 from layered.interrupt import StopRequest
 from layered.logs import CsvLog
 from layered.runstate import LoopState
-from layered.trainer import EPISODE_FIELDS, Run, build_learners, metrics_fields, phases_of, run_phase, train
+from layered.learner_set import build_learners
+from layered.results import EPISODE_FIELDS, metrics_fields
+from layered.trainer import Training, phases_of, run_phase, train
 
 RECIPES = sorted((Path(__file__).parent.parent / "recipes").rglob("*.toml"))
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
@@ -119,7 +121,7 @@ def first_phase(recipe, out: Path, steps: int):
             (("metrics", metrics_fields(recipe)), ("episodes", EPISODE_FIELDS))]
     for log in logs:
         log.start()
-    run = Run(recipe, learners, *logs, out / "run.pt", None, False, StopRequest())
+    run = Training(recipe, learners, *logs, out / "run.pt", None, False, StopRequest())
     state, phase = LoopState(), phases_of(recipe)[0]
     state.start_phase(0, phase.learn, recipe.eval.every, recipe.eval.every)
     run_phase(run, state, phase, steps)
@@ -167,7 +169,7 @@ def test_a_layer_starts_from_another_runs_weights_and_the_run_keeps_a_copy(tmp_p
     import torch
 
     from layered.recipe import RecipeError
-    from layered.trainer import load_learners
+    from layered.learner_set import load_learners
 
     train(load_recipe(PENDULUM / "tla-c.toml", TINY), tmp_path / "a", max_steps=300, progress=False)
     source = torch.load(tmp_path / "a" / "checkpoints" / "slow.best.pt", weights_only=True)["state"]["actor"]

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from layered import load_recipe
-from layered.trainer import build_learners, phases_of
+from layered.learner_set import build_learners
+from layered.trainer import phases_of
 from layered.video import COLOURS, write_videos
 
 RECIPES = {  # recipe, episodes (dm_control renders in software here, 30 ms a frame over 1000 steps)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -26,19 +26,30 @@ class LearnerConfig(BaseModel):
     gamma: float = Field(default=0.99, ge=0, le=1)
     """Discount per decision of the layer (or per base step, see train.discount)."""
 
+    def on_device(self, device: str) -> LearnerConfig:
+        """These settings with the learner placed on `device` (`cpu`, `cuda`), for a learner that has
+        a choice of device; the same settings for one that has none."""
+        return self
 
-class Losses(NamedTuple):
-    """What one gradient update returns: its losses as 0-d tensors on the learner's device. The
-    loop reads them back only when it logs or checkpoints, so that no update waits for the device."""
+    def unavailable(self) -> list[tuple[str, str]]:
+        """(key, why) for each setting this machine cannot honour (a GPU asked for where there is none)."""
+        return []
 
-    critic: torch.Tensor
-    actor: torch.Tensor | None = None  # None when the actor did not update
+
+Losses = dict[str, torch.Tensor]
+"""What one gradient update returns: each loss it computed (of the learner's `loss_names`) as a 0-d
+tensor on the learner's device. The loop reads them back only when it logs or checkpoints, so that no
+update waits for the device."""
 
 
 class Learner(ABC):
     """A layer's policy and the algorithm that trains it from the layer's own transitions."""
 
     Config: ClassVar[type[LearnerConfig]]
+    loss_names: ClassVar[tuple[str, ...]] = ()
+    """The losses `update` may return, in the order the logs list them (metrics.csv's `<name>_loss_<layer>`)."""
+    device: torch.device = torch.device("cpu")
+    """Where the learner's networks and updates live."""
 
     def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: LearnerConfig,
                  seed: int) -> None:
@@ -81,7 +92,8 @@ class Learner(ABC):
 
     @abstractmethod
     def update(self) -> Losses | None:
-        """One learning step from stored transitions, and its losses; None while there is too little data."""
+        """One learning step from stored transitions, and the losses it computed; None while there is too
+        little data."""
 
     @abstractmethod
     def state_dict(self) -> dict[str, Any]:

@@ -92,6 +92,8 @@ class ActionAndChoice(nn.Module):
 class TD3WithChoice(Learner):
     """A learner whose output is a TD3 action followed by one discrete choice, encoded as a number."""
 
+    loss_names = TD3.loss_names
+
     def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: TD3Config, seed: int,
                  choices: int, head: Literal["min", "q1"] = "min") -> None:
         super().__init__(obs_space, action_space, layout, config, seed)
@@ -101,6 +103,7 @@ class TD3WithChoice(Learner):
         self.td3 = TD3(obs_space, inner, OutputLayout(layout.size - 1), td3_config, seed)
         self.rng = np.random.default_rng([seed, 1])
         self.choice = ChoiceQ(self.td3, choices, head)
+        self.device = self.td3.device
 
     @abstractmethod
     def encode(self, index: int) -> float:

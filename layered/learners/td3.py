@@ -68,6 +68,21 @@ class TD3Config(LearnerConfig):
     The first updates then wait for compilation; results match eager ones closely, not bit for bit."""
 
 
+    def on_device(self, device: str) -> TD3Config:
+        return self.model_copy(update={"device": device})
+
+    def unavailable(self) -> list[tuple[str, str]]:
+        if torch.cuda.is_available():
+            return []
+        problems = []
+        if self.device == "cuda":
+            problems.append(("learner.device", "'cuda' asked for, but torch sees no CUDA GPU here (use 'cpu' or "
+                             "'auto')"))
+        if self.compile == "cudagraphs":
+            problems.append(("learner.compile", "'cudagraphs' asked for, but torch sees no CUDA GPU here (use "
+                             "'inductor' or 'off')"))
+        return problems
+
     @model_validator(mode="after")
     def _cudagraphs_need_a_gpu(self) -> TD3Config:
         if self.compile == "cudagraphs" and self.device == "cpu":
@@ -151,6 +166,7 @@ class TD3(Learner):
 
     Config = TD3Config
     config: TD3Config
+    loss_names = ("critic", "actor")
 
     def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: TD3Config,
                  seed: int) -> None:
@@ -224,11 +240,11 @@ class TD3(Learner):
         critic_loss = self._critic_step(b, noise)
         self.updates += 1
         if self.updates % self.config.policy_delay:
-            return Losses(critic_loss)
+            return {"critic": critic_loss}
         if self.updates <= self.config.critic_warmup:
             self._follow(self._target_pairs[1:])  # the critic's targets alone: the actor waits
-            return Losses(critic_loss)
-        return Losses(critic_loss, self._actor_step(b.obs))
+            return {"critic": critic_loss}
+        return {"critic": critic_loss, "actor": self._actor_step(b.obs)}
 
     def _critic_step_eager(self, b: Batch, noise: torch.Tensor) -> torch.Tensor:
         """One critic step on `b`, with standard-normal `noise` for target smoothing; the loss."""

@@ -1,0 +1,69 @@
+"""A recipe's learners, one per layer: built new, started from the weights a recipe names, or restored
+from a finished run's checkpoints."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from layered.agents import make_aec_env
+from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from layered.learners import LEARNERS, Learner
+from layered.schema import Recipe, RecipeError
+
+
+def build_learners(recipe: Recipe, device: str | None = None) -> dict[str, Learner]:
+    """One new learner per layer, each with its own seed, on the spaces of the whole stack;
+    `device` replaces the recipe's `device` setting of the learners that have one."""
+    torch.manual_seed(recipe.train.seed)
+    env = make_aec_env(recipe)
+    learners = {}
+    for i, layer in enumerate(recipe.layers):
+        config = recipe.learner_config(i)
+        if device is not None:
+            config = config.on_device(device)
+        space = env.action_space(layer.name)
+        layout = recipe.output_layout(i, env.stack.action_dim)
+        seed = recipe.train.seed * 1000 + i
+        learners[layer.name] = LEARNERS.get(config.kind)(env.observation_space(layer.name), space, layout, config, seed)
+    env.close()
+    return learners
+
+
+def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None) -> dict[str, Learner]:
+    """The learners of a finished run, restored from its checkpoints: each layer's `final` or `best`
+    weights of the last phase it learned in (default: the recipe's `train.select`). They act on the
+    CPU, fastest for one observation at a time, so a run trained on a GPU evaluates anywhere."""
+    learners = build_learners(recipe, device="cpu")
+    suffix = {"final": ".pt", "best": ".best.pt"}[weights or recipe.train.select]
+    for name, learner in learners.items():
+        learner.load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}{suffix}", name))
+    return learners
+
+
+def start_from_weights(recipe: Recipe, learners: dict[str, Learner]) -> None:
+    """Load each layer's `weights` checkpoint into its learner; a file that is missing, unreadable,
+    of another layer or of other network sizes is refused, naming the layer."""
+    problems = []
+    for i, layer in enumerate(recipe.layers):
+        if layer.weights is None:
+            continue
+        try:
+            learners[layer.name].load_state_dict(load_checkpoint(Path(layer.weights), layer.name))
+        except CheckpointError as e:
+            problems.append((f"layers[{i}].weights", str(e)))
+        except (RuntimeError, KeyError, ValueError) as e:
+            problems.append((f"layers[{i}].weights", f"{layer.weights}: does not fit layer {layer.name!r}'s "
+                             f"learner ({str(e).strip().splitlines()[0]})"))
+    if problems:
+        raise RecipeError("recipe", problems)
+
+
+def keep_start_weights(recipe: Recipe, learners: dict[str, Learner], folder: Path) -> None:
+    """Copy the start weights into the run's checkpoints as the layer's final and best, so that the
+    run evaluates without the original file (a phase that trains the layer replaces them)."""
+    for layer in recipe.layers:
+        if layer.weights is not None:
+            for suffix in (".pt", ".best.pt"):
+                save_checkpoint(folder / f"{layer.name}{suffix}", layer.name, learners[layer.name].state_dict())
