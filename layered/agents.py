@@ -84,13 +84,13 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
     def observe(self, agent: str) -> np.ndarray:
         return self.stack.observation(self._index[agent], self._obs)
 
-    def step(self, action: np.ndarray | None) -> int:  # type: ignore[override]
+    def step(self, action: np.ndarray | None) -> None:
         """The selected layer's decision; the environment then runs until some layer is due or the
-        episode ends. Returns the number of base steps it ran (PettingZoo ignores it; training counts it)."""
+        episode ends (`episode_steps` counts the base steps run)."""
         agent = self.agent_selection
         if self.terminations[agent] or self.truncations[agent]:
             self._was_dead_step(action)
-            return 0
+            return
         if action is None:
             raise ValueError(f"layer {agent!r} is due and must be given an action, not None")
         i = self._index[agent]
@@ -99,12 +99,10 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         self.rewards = dict.fromkeys(self.agents, 0.0)
         self.stack.decide(i, self.observe(agent), action)
         self._decided.append(agent)
-        advanced = 0
         due = self.stack.next_due(i + 1)
         ended = False
         while due is None and not ended:
             ended = self._base_step()
-            advanced += 1
             due = None if ended else self.stack.next_due(0)
         self._accumulate_rewards()
         if ended:
@@ -115,7 +113,6 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
             assert due is not None
             self.agent_selection = self.stack.layers[due].name
             self._complete(self.agent_selection)
-        return advanced
 
     def _complete(self, agent: str) -> None:
         """It is `agent`'s turn: hand it the transition completed since its latest decision."""

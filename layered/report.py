@@ -48,6 +48,11 @@ def results_table(rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def count(n: int, noun: str) -> str:
+    """`1 seed`, `3 seeds`."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def _pyplot() -> Any:
     """matplotlib's pyplot, drawing off-screen; imported only when a figure is drawn (it is large)."""
     import matplotlib
@@ -90,7 +95,7 @@ def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
         x = [int(r["step"]) for r in sel]
         y = [float(r["return_mean"]) for r in sel]
         s = [float(r["return_std"]) for r in sel]
-        line, = ax.plot(x, y, marker="o", ms=3, label=f"phase {int(phase) + 1}: {sel[0]['learn']} learns")
+        line, = ax.plot(x, y, marker="o", ms=3, label=f"phase {phase}: {sel[0]['learn']} learns")
         ax.fill_between(x, *band(y, np.asarray(s), *_extremes(sel)), color=line.get_color(), alpha=0.2)
     _steps_axis(ax, "environment steps in phase")
     ax.set_ylabel("evaluation return")
@@ -201,8 +206,12 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
         for ax, env in zip(row, envs, strict=True):
             for s in (s for s in setups if s.env == env):
                 steps, mean, std, lowest, highest = s.curve(whole_run)
-                line, = ax.plot(steps, mean, label=f"{s.method} ({len(s.runs)} seeds)")
+                line, = ax.plot(steps, mean, label=f"{s.method} ({count(len(s.runs), 'seed')})")
                 ax.fill_between(steps, *band(mean, std, lowest, highest), color=line.get_color(), alpha=0.2)
+                for phase, start in enumerate(s.runs[0].phase_starts if whole_run else (), start=1):
+                    ax.axvline(start, color=line.get_color(), ls=":", lw=1)
+                    ax.annotate(f"phase {phase}", (start, 1), xycoords=("data", "axes fraction"), xytext=(2, -2),
+                                textcoords="offset points", va="top", fontsize="x-small", color=line.get_color())
             ax.set_title(env)
             _steps_axis(ax, xlabel)
             ax.set_ylabel("evaluation return")
@@ -238,7 +247,7 @@ def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str
                 "repetition": np.mean([float(p[t]["repetition"]) for p in per_run]),
             } for t in common]
             name = f"threshold-{_slug(s)}.png"
-            plot_threshold_sweep(rows, out / name, f"{s.env} {s.method}: threshold ({len(sweeps)} runs)")
+            plot_threshold_sweep(rows, out / name, f"{s.env} {s.method}: threshold ({count(len(sweeps), 'seed')})")
             parts += [f"### Return and action frequency against the threshold: {s.env}, {s.method}", "",
                       f"![threshold sweep]({name})", ""]
         galleries = sorted(p for r in s.runs for p in (r.path / "eval").glob("gallery-*.png"))
@@ -326,7 +335,8 @@ def save_gallery(shots: Sequence[tuple[int, Any, Any]], layer: str, out_png: Pat
     """The rendered states in one row, each titled with its step, the layer's part of the action
     and the executed action."""
     plt = _pyplot()
-    fig, axes = plt.subplots(1, max(1, len(shots)), figsize=(2.2 * max(1, len(shots)), 2.9), squeeze=False)
+    fig, axes = plt.subplots(1, max(1, len(shots)), figsize=(2.2 * max(1, len(shots)), 3.2), squeeze=False,
+                             layout="constrained")  # keeps the title clear of the frames' own titles
     for ax in axes[0]:
         ax.axis("off")
     rows, cols = _content(np.asarray([frame for _, frame, _ in shots])) if shots else (slice(None), slice(None))

@@ -44,6 +44,6 @@ def mean_losses(losses: dict[str, list[UpdateStats]], learners: Mapping[str, Lea
 def write_results(recipe: Recipe, rows: list[dict[str, Any]], out: Path, label: str) -> None:
     """results.json (every number of the table), results.md, and the learning-curve plot."""
     summary = {"env": recipe.env.id, "label": label, "seed": recipe.train.seed, "phases": rows}
-    plot_curves(out / "metrics.csv", out / "curves.png", title=f"{recipe.env.id}: {out.name}")
+    plot_curves(out / "metrics.csv", out / "curves.png", title=f"{recipe.env.id}: {label}, seed {recipe.train.seed}")
     write_atomically(out / "results.md", results_table(rows) + "\n")
     write_atomically(out / "results.json", json.dumps(summary, indent=2))  # last: it marks the run finished

@@ -24,9 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from .combiners import Combiner, Route, combiner_from_json
+from .combiners import Combiner, Route, clip, combiner_from_json
 
 FORMAT = 2  # of the rules' JSON description (`Rules.to_json`); the runtime refuses another
+ADD, COMMIT, DEFER = int(Route.ADD), int(Route.COMMIT), int(Route.DEFER)  # plain ints: enum lookups are slow
 
 
 @dataclass(frozen=True)
@@ -109,6 +110,7 @@ class Rules:
         self.rows = rows
         self._all = np.ones(rows, bool)
         self._index = np.arange(rows)
+        self._adds = np.full(rows, ADD, np.int8)  # the route of a layer that only adds (never written to)
         self.t = np.zeros(rows, np.int64)
         self.held = [np.zeros((rows, layer.size), np.float32) for layer in self.layers]
         self.inflight = [np.zeros((rows, layer.delay, layer.size), np.float32) for layer in self.layers]
@@ -168,7 +170,7 @@ class Rules:
         fastest present layer has no one below in this phase: its output just joins the sum."""
         combiner = self.layers[j].combiner
         if position == len(self.active) - 1 or combiner is None:
-            return np.full(len(outputs), Route.ADD, np.int8)
+            return self._adds
         return combiner.route(outputs[:, : self.action_dim + combiner.gate_dims])
 
     def next_due(self, start: int | np.ndarray = 0) -> np.ndarray:
@@ -180,7 +182,9 @@ class Rules:
             hit = open_ & (i >= start) & self.due(i)
             result[hit] = i
             open_ &= ~hit
-            commits = open_ & (self.route(position, i, self.held[i]) == Route.COMMIT)
+            if not open_.any():
+                break
+            commits = open_ & (self.route(position, i, self.held[i]) == COMMIT)
             if commits.any():  # never the last layer: it only adds
                 below = self.active[position + 1]
                 if self.layers[below].learns_from_commits:
@@ -241,7 +245,7 @@ class Rules:
             if j < gate:
                 above = above + composition.contributions[j]
         layer = self.layers[i]
-        return np.clip(composition.action - above, layer.low, layer.high).astype(np.float32)
+        return clip(composition.action - above, layer.low, layer.high).astype(np.float32)
 
     def hold(self, i: int, outputs: np.ndarray, rows: np.ndarray | None = None) -> None:
         """In the `rows` (a mask; default all), layer i decided `outputs` ([K, size]): each is held until
@@ -249,7 +253,7 @@ class Rules:
         in flight takes effect now."""
         rows = self._all if rows is None else rows
         layer = self.layers[i]
-        outputs = np.clip(np.asarray(outputs, np.float32).reshape(self.rows, layer.size), layer.low, layer.high)
+        outputs = clip(np.asarray(outputs, np.float32).reshape(self.rows, layer.size), layer.low, layer.high)
         self.resume_at[i] = np.where(rows, self.t + layer.repeats(outputs) * layer.period, self.resume_at[i])
         queue = self.inflight[i]
         if queue.shape[1]:
@@ -293,11 +297,11 @@ class Rules:
                 own = admit_by.admit(total, own, self.low, self.high)
             route = routes[i] = self.route(position, i, outputs[i])
             reached[i] = open_
-            contributions[i] = np.where((open_ & (route != Route.DEFER))[:, None], own, np.float32(0.0))
+            contributions[i] = np.where((open_ & (route != DEFER))[:, None], own, np.float32(0.0))
             total = total + contributions[i]
-            open_ = open_ & (route != Route.COMMIT)
+            open_ = open_ & (route != COMMIT)
             admit_by = self.layers[i].combiner
-        return Composition(np.clip(total, self.low, self.high), contributions, routes, reached)
+        return Composition(clip(total, self.low, self.high), contributions, routes, reached)
 
     def layer_rewards(self, reward: np.ndarray, composition: Composition) -> dict[int, np.ndarray]:
         """Each present layer's shaped share ([K]) of one base step's rewards ([K]).
@@ -312,18 +316,26 @@ class Rules:
         out: dict[int, np.ndarray] = {}
         proposed = np.zeros((self.rows, self.action_dim), np.float32)  # by the nearest deferring gate so far
         deferring = np.zeros(self.rows, bool)
-        for i in self.active:
-            layer, reached = self.layers[i], composition.reached[i]
-            defers = reached & (composition.routes[i] == Route.DEFER)
-            negative, positive = layer.defer_reward_scale
-            scaled = reward * np.where(reward <= 0, negative, positive) - layer.defer_penalty
-            r = np.where(defers, scaled, reward)
-            proposed = np.where(defers[:, None], self.held[i][:, : self.action_dim], proposed)
-            deferring = deferring | defers
-            size = np.mean(np.abs(composition.contributions[i]) / layer.half_range[: self.action_dim], axis=1)
-            r = np.where(reached, r - layer.action_penalty * size.astype(np.float64), r)
-            if layer.deviation_penalty:
-                deviation = np.mean(np.abs(composition.action - proposed) / self.env_half, axis=1)
+        for i in self.active:  # (a penalty of 0 leaves r as it is: r - 0 * x == r for the finite x here)
+            layer, reached, r = self.layers[i], composition.reached[i], reward
+            defers = reached & (composition.routes[i] == DEFER)
+            if defers.any():
+                negative, positive = layer.defer_reward_scale
+                r = np.where(defers, reward * np.where(reward <= 0, negative, positive) - layer.defer_penalty, r)
+                proposed = np.where(defers[:, None], self.held[i][:, : self.action_dim], proposed)
+                deferring = deferring | defers
+            if layer.action_penalty:
+                size = _mean(np.abs(composition.contributions[i]) / layer.half_range[: self.action_dim])
+                r = np.where(reached, r - layer.action_penalty * size.astype(np.float64), r)
+            if layer.deviation_penalty and deferring.any():
+                deviation = _mean(np.abs(composition.action - proposed) / self.env_half)
                 r = np.where(reached & deferring, r - layer.deviation_penalty * deviation.astype(np.float64), r)
             out[i] = r
         return out
+
+
+def _mean(x: np.ndarray) -> np.ndarray:
+    """The mean over the last axis exactly as np.mean computes it (a float32 sum, divided by an integer count
+    in float64 and cast back), without its overhead."""
+    total = np.add.reduce(x, axis=-1)
+    return np.true_divide(total, np.intp(x.shape[-1]), out=total, casting="unsafe")

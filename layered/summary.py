@@ -29,6 +29,7 @@ class FinishedRun:
     final: dict[str, float]
     curve: tuple[tuple[int, float], ...]
     total_curve: tuple[tuple[int, float], ...] = ()
+    phase_starts: tuple[int, ...] = ()  # steps since training began at which phases 1, 2, ... started
 
     @property
     def method(self) -> str:
@@ -52,7 +53,7 @@ def load_finished_run(path: Path) -> FinishedRun:
         path=path, env=results["env"], label=label, seed=int(results.get("seed", recipe["train"]["seed"])),
         realtime=any(layer.get("delay", 0) > 0 for layer in recipe["layers"]),
         final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)},
-        curve=curve, total_curve=_total_curve(rows),
+        curve=curve, total_curve=_total_curve(rows), phase_starts=_phase_starts(rows),
     )
 
 
@@ -68,6 +69,13 @@ def _total_curve(rows: Sequence[dict[str, str]]) -> tuple[tuple[int, float], ...
         points += [(offset + s, v) for s, v in steps if not (points and s == 0)]
         offset += max(s for s, _ in steps)
     return tuple(points)
+
+
+def _phase_starts(rows: Sequence[dict[str, str]]) -> tuple[int, ...]:
+    """The steps since training began at which each phase after the first started."""
+    phases = dict.fromkeys(r["phase"] for r in rows)
+    ends = [max(int(r["step"]) for r in rows if r["phase"] == phase) for phase in phases]
+    return tuple(int(x) for x in np.cumsum(ends)[:-1])
 
 
 @dataclass(frozen=True)

@@ -268,7 +268,9 @@ def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, e
             warm = state.decisions[name] < warmups[name]
             action = learner.random_action() if warm else learner.act(obs, explore=True)
         _check_finite(action, "action", name, state)
-        advanced = env.step(action)  # step
+        before = env.episode_steps
+        env.step(action)  # step
+        advanced = env.episode_steps - before
         state.step += advanced
         bar.advance(advanced)
         if learns:  # update

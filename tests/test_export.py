@@ -53,6 +53,27 @@ def test_onnx_export_executes_the_library_actions(tmp_path):
     assert result.exported_return == pytest.approx(result.library_return, rel=1e-3)
 
 
+def test_the_runtime_carries_the_librarys_own_rules_and_they_import_nothing_of_it(tmp_path):
+    """One implementation of the rules: the exported package holds the library's modules byte for byte,
+    and those import numpy, the standard library and each other (relatively) only; the runtime also the
+    policies' backend when it loads them."""
+    import ast
+    import inspect
+
+    from layered.export import RUNTIME_MODULES
+
+    *_, out = exported("recipes/pendulum/tla-c.toml", [], tmp_path)
+    allowed = set(sys.stdlib_module_names) | {"numpy", "torch", "onnxruntime"}
+    for file, module in RUNTIME_MODULES.items():
+        source = inspect.getsource(module)
+        assert (out / "layered_runtime" / file).read_text() == source, file
+        for node in ast.walk(ast.parse(source)):
+            if isinstance(node, ast.ImportFrom) and node.level == 0:
+                assert node.module.split(".")[0] in allowed, f"{file} imports {node.module}"
+            elif isinstance(node, ast.Import):
+                assert {a.name.split(".")[0] for a in node.names} <= allowed, f"{file} imports {ast.unparse(node)}"
+
+
 def test_exported_directory_runs_with_torch_alone(tmp_path):
     """The runtime imports nothing of layered: a fresh interpreter without it on the path runs it."""
     *_, out = exported("recipes/pendulum/tla-c.toml", [], tmp_path)

@@ -91,7 +91,6 @@ def test_no_usable_checkpoint_is_refused_and_nothing_changes(tmp_path, monkeypat
 def test_divergence_stops_naming_layer_phase_and_step_and_keeps_the_last_checkpoint(tmp_path, monkeypatch):
     import torch
 
-    from layered.learners import Losses
     from layered.learners.td3 import TD3
 
     recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
@@ -100,7 +99,7 @@ def test_divergence_stops_naming_layer_phase_and_step_and_keeps_the_last_checkpo
     def update(self):
         calls.append(1)
         losses = original(self)
-        return Losses(torch.tensor(float("nan"))) if len(calls) == 400 else losses
+        return {"critic": torch.tensor(float("nan"))} if len(calls) == 400 else losses
 
     monkeypatch.setattr(TD3, "update", update)
     # The 400th update is at step 325 of phase 1; losses are read back at the next evaluation or

@@ -44,22 +44,22 @@ def test_rows_stepped_together_are_the_stacks_stepped_alone(periods, kinds, sett
     for _ in range(steps):
         obs = rng.uniform(-1, 1, (rows, 3)).astype(np.float32)
 
-        def act(r):
-            def policy(i, seen, mask):
+        def act(r, clocks):
+            def policy(j, seen, mask):
                 picked = np.flatnonzero(mask) if r is None else [r]
-                layer = batch.layers[i]
-                return np.stack([output(k, i, int(batch.t[k] if r is None else alone[r].t[0]), episode[k], layer.size,
-                                        layer.low, layer.high) for k in picked])
+                layer = batch.layers[j]
+                return np.stack([output(k, j, int(clocks[k if r is None else 0]), episode[k], layer.size, layer.low,
+                                        layer.high) for k in picked])
             return policy
 
         seen_together = {i: batch.observation(i, obs) for i in batch.active}  # before anyone decides
-        decided = batch.decide_all(obs, act(None))
+        decided = batch.decide_all(obs, act(None, batch.t))
         together = batch.compose()
         reward = rng.normal(size=rows)
         shares = batch.layer_rewards(reward, together)
         for r, single in enumerate(alone):
             seen = {i: single.observation(i, obs[r:r + 1])[0] for i in single.active}
-            decided_alone = single.decide_all(obs[r:r + 1], act(r))
+            decided_alone = single.decide_all(obs[r:r + 1], act(r, single.t))
             composition = single.compose()
             assert composition.action[0].tolist() == together.action[r].tolist()
             for i in single.active:
