@@ -3,7 +3,7 @@
 from layered.agents import LayeredEnv, make_aec_env
 from layered.plugins import load_plugin
 from layered.recipe import Recipe, RecipeError, load_recipe
-from layered.trainer import resume, train
+from layered.runs import resume, train
 
 __all__ = ["LayeredEnv", "Recipe", "RecipeError", "load_plugin", "load_recipe", "make_aec_env", "resume", "train"]
 __version__ = "0.1.0"

@@ -145,7 +145,7 @@ def _fail(message: str) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     from layered.rundir import check_new_run_dir, clear_run_dir
-    from layered.trainer import train
+    from layered.runs import train
 
     overrides = list(args.overrides) + ([f"train.seed={args.seed}"] if args.seed is not None else [])
     overrides += ["log.tensorboard=true"] if args.tensorboard else []
@@ -165,7 +165,7 @@ def _train(args: argparse.Namespace) -> int:
 
 def _resume(args: argparse.Namespace) -> int:
     from layered.rundir import read_run_info
-    from layered.trainer import resume
+    from layered.runs import resume
 
     load_plugins(read_run_info(args.run_dir).plugins)
     if (args.run_dir / "results.json").exists():
@@ -252,7 +252,8 @@ def _export(args: argparse.Namespace) -> int:
     from layered.export import export_stack
     from layered.latency import compare
     from layered.learner_set import load_learners
-    from layered.trainer import phases_of, run_plugins
+    from layered.rundir import run_plugins
+    from layered.trainer import phases_of
 
     if args.threshold is not None and args.threshold < 0:
         return _fail("--threshold must be >= 0")

@@ -109,8 +109,8 @@ class ResidualClip(Combiner):
         effect = np.abs(clip(above + contribution, low, high) - clip(above, low, high))
         small = effect < self.threshold
         if not self.per_dimension:
-            small = np.all(small, axis=-1, keepdims=True)
-        return np.where(small, 0.0, contribution).astype(contribution.dtype)
+            small = small.all(axis=-1, keepdims=True)
+        return np.where(small, 0.0, contribution).astype(contribution.dtype, copy=False)
 
 
 @COMBINERS.register("gate")

@@ -57,10 +57,10 @@ class Layer:
         """Length of the layer's output vector."""
         return len(self.low)
 
-    def repeats(self, outputs: np.ndarray) -> np.ndarray:
+    def repeats(self, outputs: np.ndarray) -> np.ndarray | int:
         """For how many of its periods the layer holds each of `outputs` ([K, size]) before deciding again."""
         if self.max_repeat <= 1:
-            return np.ones(len(outputs), np.int64)
+            return 1
         return np.clip(np.rint(outputs[:, -1]), 1, self.max_repeat).astype(np.int64)
 
     def to_json(self) -> dict[str, Any]:
@@ -84,7 +84,8 @@ class Composition:
     """The executed actions of one base step over the batch, and how each present layer took part."""
 
     action: np.ndarray  # [K, action dims], clipped to the bounds
-    contributions: dict[int, np.ndarray]  # [K, action dims] per present layer: zero where deferring or not reached
+    contributions: dict[int, np.ndarray]  # [K, action dims] per present layer: zero where deferring or not
+    # reached; they may share memory with the held outputs, which the next decision overwrites: copy to keep
     routes: dict[int, np.ndarray]  # [K] Route codes per present layer
     reached: dict[int, np.ndarray]  # [K] bool per present layer: no committed gate above it
 
@@ -111,6 +112,7 @@ class Rules:
         self._all = np.ones(rows, bool)
         self._index = np.arange(rows)
         self._adds = np.full(rows, ADD, np.int8)  # the route of a layer that only adds (never written to)
+        self._none = np.zeros(rows, bool)  # (never written to)
         self.t = np.zeros(rows, np.int64)
         self.held = [np.zeros((rows, layer.size), np.float32) for layer in self.layers]
         self.inflight = [np.zeros((rows, layer.delay, layer.size), np.float32) for layer in self.layers]
@@ -182,10 +184,10 @@ class Rules:
             hit = open_ & (i >= start) & self.due(i)
             result[hit] = i
             open_ &= ~hit
-            if not open_.any():
+            if not _any(open_):
                 break
             commits = open_ & (self.route(position, i, self.held[i]) == COMMIT)
-            if commits.any():  # never the last layer: it only adds
+            if _any(commits):  # never the last layer: it only adds
                 below = self.active[position + 1]
                 if self.layers[below].learns_from_commits:
                     result[commits & (below >= start) & self.due(below)] = below
@@ -199,7 +201,7 @@ class Rules:
         if not queue.shape[1]:
             return held
         upcoming = self.upcoming(j)
-        k = np.clip((step - upcoming) // self.layers[j].period, 0, queue.shape[1] - 1)
+        k = np.minimum(np.maximum((step - upcoming) // self.layers[j].period, 0), queue.shape[1] - 1)
         return np.where((step < upcoming)[:, None], held, queue[self._index, k])
 
     def observation(self, i: int, obs: np.ndarray) -> np.ndarray:
@@ -231,7 +233,7 @@ class Rules:
         if self.layers[i].learns_from_commits:
             composition = self.compose()
             kept_out = ~composition.reached[i]
-            if kept_out.any():
+            if _any(kept_out):
                 outputs = np.where(kept_out[:, None], self._executed_as_output(i, composition), outputs)
         self.hold(i, outputs, rows)
         return outputs
@@ -252,29 +254,43 @@ class Rules:
         its next decision, or, with a delay of d, takes effect d decisions later while the oldest output
         in flight takes effect now."""
         rows = self._all if rows is None else rows
+        every = _every(rows)  # all rows: plain assignments (the common case at K = 1)
         layer = self.layers[i]
         outputs = clip(np.asarray(outputs, np.float32).reshape(self.rows, layer.size), layer.low, layer.high)
-        self.resume_at[i] = np.where(rows, self.t + layer.repeats(outputs) * layer.period, self.resume_at[i])
+        resume_at = self.t + layer.repeats(outputs) * layer.period
+        self.resume_at[i] = resume_at if every else np.where(rows, resume_at, self.resume_at[i])
         queue = self.inflight[i]
         if queue.shape[1]:
             landing = queue[:, 0].copy()
-            queue[rows] = np.concatenate([queue[:, 1:], outputs[:, None]], axis=1)[rows]
+            shifted = np.concatenate([queue[:, 1:], outputs[:, None]], axis=1)
+            queue[...] = shifted if every else np.where(rows[:, None, None], shifted, queue)
             outputs = landing
-        self.held[i][rows] = outputs[rows]
+        self.held[i][...] = outputs if every else np.where(rows[:, None], outputs, self.held[i])
 
     def decide_all(self, obs: np.ndarray, act: Act) -> dict[int, np.ndarray]:
-        """Every decision of the current step, slowest layer first: each due layer is given its
-        observations and asked for its outputs by `act`. The mask of deciding rows, per present layer."""
-        due = self.next_due(0)
+        """Every decision of the current step in one pass down the stack, slowest layer first: each layer
+        due in a row and not kept out there by a committed gate above it is given its observations and
+        asked for its outputs by `act`. The same decisions as following `next_due` from each decision to
+        the next (the layer right below a committed gate decides if it learns from commits, and none
+        below it), in one pass instead of one walk per decision. The mask of deciding rows, per present layer."""
         decided = {}
-        for i in self.active:
-            rows = due == i
-            decided[i] = rows
-            if rows.any():
+        open_ = self._all  # rows in which no committed gate stands above this layer
+        under = self._none  # rows in which the layer right above committed
+        for position, i in enumerate(self.active):
+            allowed = open_ | under if self.layers[i].learns_from_commits else open_
+            rows = decided[i] = allowed & self.due(i)
+            if _every(rows):
+                self.decide(i, act(i, self.observation(i, obs), rows), rows)
+            elif _any(rows):
                 outputs = np.zeros((self.rows, self.layers[i].size), np.float32)
                 outputs[rows] = act(i, self.observation(i, obs)[rows], rows)
                 self.decide(i, outputs, rows)
-                due = np.where(rows, self.next_due(i + 1), due)
+            route = self.route(position, i, self.held[i])
+            if _any(route):  # some row commits or defers (ADD is 0)
+                under = open_ & (route == COMMIT)
+                open_ = open_ & ~under
+            else:
+                under = self._none
         return decided
 
     def compose(self) -> Composition:
@@ -297,9 +313,12 @@ class Rules:
                 own = admit_by.admit(total, own, self.low, self.high)
             route = routes[i] = self.route(position, i, outputs[i])
             reached[i] = open_
-            contributions[i] = np.where((open_ & (route != DEFER))[:, None], own, np.float32(0.0))
+            if _any(route):  # some row commits or defers (ADD is 0)
+                contributions[i] = np.where((open_ & (route != DEFER))[:, None], own, np.float32(0.0))
+                open_ = open_ & (route != COMMIT)
+            else:
+                contributions[i] = own if open_ is self._all else np.where(open_[:, None], own, np.float32(0.0))
             total = total + contributions[i]
-            open_ = open_ & (route != COMMIT)
             admit_by = self.layers[i].combiner
         return Composition(clip(total, self.low, self.high), contributions, routes, reached)
 
@@ -319,7 +338,7 @@ class Rules:
         for i in self.active:  # (a penalty of 0 leaves r as it is: r - 0 * x == r for the finite x here)
             layer, reached, r = self.layers[i], composition.reached[i], reward
             defers = reached & (composition.routes[i] == DEFER)
-            if defers.any():
+            if _any(defers):
                 negative, positive = layer.defer_reward_scale
                 r = np.where(defers, reward * np.where(reward <= 0, negative, positive) - layer.defer_penalty, r)
                 proposed = np.where(defers[:, None], self.held[i][:, : self.action_dim], proposed)
@@ -327,7 +346,7 @@ class Rules:
             if layer.action_penalty:
                 size = _mean(np.abs(composition.contributions[i]) / layer.half_range[: self.action_dim])
                 r = np.where(reached, r - layer.action_penalty * size.astype(np.float64), r)
-            if layer.deviation_penalty and deferring.any():
+            if layer.deviation_penalty and _any(deferring):
                 deviation = _mean(np.abs(composition.action - proposed) / self.env_half)
                 r = np.where(reached & deferring, r - layer.deviation_penalty * deviation.astype(np.float64), r)
             out[i] = r
@@ -339,3 +358,13 @@ def _mean(x: np.ndarray) -> np.ndarray:
     in float64 and cast back), without its overhead."""
     total = np.add.reduce(x, axis=-1)
     return np.true_divide(total, np.intp(x.shape[-1]), out=total, casting="unsafe")
+
+
+def _any(mask: np.ndarray) -> bool:
+    """Whether any row of `mask` is set; for one stack, without a reduction's overhead (the common case)."""
+    return bool(mask[0]) if len(mask) == 1 else bool(mask.any())
+
+
+def _every(mask: np.ndarray) -> bool:
+    """Whether every row of `mask` is set; for one stack, without a reduction's overhead."""
+    return bool(mask[0]) if len(mask) == 1 else bool(mask.all())

@@ -43,7 +43,8 @@ def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | Non
     """The run in `run_dir` with each phase's `final` or `best` weights (default: its train.select),
     after importing the plugins it was trained with and `plugins`."""
     from layered.learner_set import load_learners
-    from layered.trainer import phases_of, run_plugins
+    from layered.rundir import run_plugins
+    from layered.trainer import phases_of
 
     load_plugins(run_plugins(run_dir) + list(plugins or []))  # refuses a directory that holds no run
     recipe = load_recipe(run_dir / "recipe.toml")

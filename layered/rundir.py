@@ -86,3 +86,8 @@ def read_run_info(run_dir: Path) -> RunInfo:
         return RunInfo(str(data["label"]), data["max_steps"], tuple(data["plugins"]))
     except (ValueError, KeyError, TypeError) as e:
         raise RunDirError(f"{path} is damaged ({e.__class__.__name__}: {e})") from None
+
+
+def run_plugins(run_dir: Path) -> list[str]:
+    """The plugins a run was trained with."""
+    return list(read_run_info(run_dir).plugins)

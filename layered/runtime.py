@@ -55,7 +55,7 @@ class ExportedStack:
         decided = self.rules.decide_all(np.asarray(obs, np.float32).reshape(1, -1), self._act)
         self.decided = [self.names[i] for i, rows in decided.items() if rows[0]]
         composition = self.rules.compose()
-        self.contributions = {self.names[i]: composition.contributions[i][0]
+        self.contributions = {self.names[i]: composition.contributions[i][0].copy()  # the rules reuse their arrays
                               for i in self.rules.active if composition.reached[i][0]}
         self.rules.tick()
         return composition.action[0]
@@ -63,7 +63,7 @@ class ExportedStack:
     def _act(self, i: int, seen: np.ndarray, rows: np.ndarray) -> np.ndarray:
         policy = self.policies[i]
         assert policy is not None, "only present layers decide, and each has a policy"
-        return np.stack([np.asarray(policy(o), np.float32).ravel() for o in seen])
+        return np.asarray(policy(seen[0]), np.float32).reshape(1, -1)  # one stack: one row
 
 
 def _torchscript_policy(path: Path) -> Policy:

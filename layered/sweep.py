@@ -79,7 +79,7 @@ def run_job(job: Job) -> Outcome:
     import torch
 
     from layered.interrupt import Stopped
-    from layered.trainer import train
+    from layered.runs import train
 
     if (job.out / "results.json").exists():
         return Outcome(job, "skipped", "already finished")

@@ -1,22 +1,19 @@
 """The training loop: phases of a training order, each driving the stack's AEC env directly.
 
-A run can be stopped at any moment and resumed to exactly the result of a run that never
-stopped: the loop's position is one `LoopState`, checkpointed with the learners at episode
-boundaries (see layered.runstate); SIGINT and SIGTERM finish the episode under way, checkpoint
-and stop.
+The loop's position is one `LoopState`, checkpointed with the learners at episode boundaries
+(see layered.runstate), so that a run stopped at any moment resumes to exactly the result of a run
+that never stopped; SIGINT and SIGTERM finish the episode under way, checkpoint and stop. Starting
+and resuming a run in its directory is layered.runs.
 """
 
 from __future__ import annotations
 
 import copy
-import sys
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tomli_w
 import torch
 
 from layered.agents import LayeredEnv, make_aec_env
@@ -25,16 +22,13 @@ from layered.evaluate import evaluate
 from layered.interrupt import StopRequest, Stopped
 from layered.learners import Learner
 from layered.events import EventLog
-from layered.events import available as events_available
 from layered.logs import CsvLog
 from layered.metrics import Evaluation, normalised_auc
 from layered.orders import ORDERS, Phase
 from layered.progress import Progress
-from layered.recipe import Recipe, RecipeError, load_recipe, resolved
-from layered.rundir import RunDirError, RunInfo, has_progress, prepare_run_dir, read_run_info
-from layered.learner_set import build_learners, keep_start_weights, start_from_weights
-from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
-from layered.runstate import LoopState, load_state, save_state
+from layered.recipe import Recipe, resolved
+from layered.results import mean_losses
+from layered.runstate import LoopState, save_state
 
 FRESH_MEASURES = ("return_mean", "return_std", "repetition", "decisions", "jerk")
 
@@ -89,72 +83,7 @@ def checkpoint_interval(recipe: Recipe) -> int:
     return recipe.train.checkpoint_every or recipe.eval.every
 
 
-def warmup_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
-    """Phases too short for a learning layer to finish its random warm-up, so that it never learns."""
-    out = []
-    periods = {layer.name: int(layer.period or 1) for layer in recipe.layers}
-    for p, phase in enumerate(phases_of(recipe)):
-        budget = phase_budget(recipe, phase, max_steps)
-        for name in phase.learn:
-            warmup = recipe.warmup(name)
-            if budget <= warmup * periods[name]:
-                out.append(f"phase {p} runs {budget} steps, but layer {name!r} acts at random for its first "
-                           f"{warmup} decisions ({warmup * periods[name]} steps at period {periods[name]}): "
-                           "it will not learn (lower its warmup or raise the steps)")
-    return out
-
-
-def train(
-    recipe: Recipe, out_dir: str | Path, max_steps: int | None = None, progress: bool = True,
-    label: str | None = None, resume: bool = False, plugins: Sequence[str] = (),
-) -> list[dict[str, Any]]:
-    """Train every phase of `recipe`, writing the run directory; `max_steps` caps each phase.
-
-    `label` names the setup for reports (e.g. `pendulum/tla-c`); runs of the same setup with
-    different seeds share it. It defaults to the run directory's name. With `resume`, a run
-    directory holding a stopped run continues from its last checkpoint (an empty one starts);
-    without, a directory holding a run is refused. `plugins` (see layered.plugins) are recorded
-    so that evaluating the run imports them again. Returns the results row of each phase, as in
-    results.json. Raises Stopped when SIGINT or SIGTERM stopped it, after a final checkpoint.
-    """
-    out = Path(out_dir)
-    for warning in warmup_warnings(recipe, max_steps):
-        print(f"layered: warning: {warning}", file=sys.stderr)
-    unavailable = sorted({p for i in range(len(recipe.layers)) for p in recipe.learner_config(i).unavailable()})
-    if unavailable:
-        raise RecipeError("recipe", unavailable)
-    if recipe.log.tensorboard and not events_available():
-        raise RecipeError("recipe", [("log.tensorboard", "needs the extra layered[tensorboard]: "
-                                      "pip install -e '.[tensorboard]' in the checkout")])
-    info = RunInfo(label or out.name, max_steps, tuple(plugins))
-    learners = build_learners(recipe)
-    if not (resume and has_progress(out)):
-        start_from_weights(recipe, learners)  # a bad `weights` file is refused before anything is written
-    prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # so that a run killed early resumes
-    checkpoint = out / "checkpoints" / "run.pt"
-    state = load_state(checkpoint, learners, resolved(recipe), max_steps)
-    resumed_at = None if state is None else (state.phase, state.step)
-    run = Training(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
-              CsvLog(out / "episodes.csv", EPISODE_FIELDS), checkpoint, max_steps, progress, StopRequest(),
-              EventLog(out / "tensorboard", resumed_at) if recipe.log.tensorboard else None)
-    if state is None:
-        state = LoopState()
-        keep_start_weights(recipe, learners, checkpoint.parent)
-        run.metrics.start()
-        run.episodes.start()
-    else:
-        run.metrics.truncate(state.log_sizes["metrics"])
-        run.episodes.truncate(state.log_sizes["episodes"])
-    try:
-        _train_phases(run, state, out)
-    finally:
-        if run.events is not None:
-            run.events.close()
-    write_results(recipe, state.rows, out, info.label)
-    return state.rows
-
-
-def _train_phases(run: Training, state: LoopState, out: Path) -> None:
+def train_phases(run: Training, state: LoopState, out: Path) -> None:
     """Train the phases from where `state` stands, checkpointing at the end of each."""
     recipe = run.recipe
     with run.stop.installed():
@@ -202,20 +131,6 @@ def _fresh_evaluation(run: Training, phase: Phase, label: str) -> dict[str, floa
     finally:
         env.close()
     return {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
-
-
-def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
-    """Continue a stopped run from its last checkpoint, with the recipe and settings it was started with.
-
-    `max_steps`, when given, must be the one the run was started with.
-    """
-    run_dir = Path(run_dir)
-    info = read_run_info(run_dir)
-    if max_steps is not None and max_steps != info.max_steps:
-        started = "no --steps" if info.max_steps is None else f"--steps {info.max_steps}"
-        raise RunDirError(f"{run_dir}: the run was started with {started}, not --steps {max_steps}")
-    recipe = load_recipe(run_dir / "recipe.toml")
-    return train(recipe, run_dir, info.max_steps, progress, info.label, resume=True, plugins=info.plugins)
 
 
 def run_phase(run: Training, state: LoopState, phase: Phase, budget: int) -> PhaseResult:
@@ -348,11 +263,6 @@ def _check_finite(values: np.ndarray, what: str, layer: str, state: LoopState) -
     if not np.all(np.isfinite(values)):
         raise Diverged(f"layer {layer!r} met a non-finite {what} in phase {state.phase} at step {state.step}; "
                        "the last checkpoint is intact (lower the learning rate, or check the environment)")
-
-
-def run_plugins(run_dir: Path) -> list[str]:
-    """The plugins a run was trained with."""
-    return list(read_run_info(run_dir).plugins)
 
 
 def _auc(recipe: Recipe, curve: list[tuple[int, Evaluation]]) -> float | None:

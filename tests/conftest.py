@@ -12,6 +12,7 @@ import torch
 os.environ.setdefault("MUJOCO_GL", "egl")
 torch.set_num_threads(1)
 
+import layered.runs as runs  # noqa: E402
 import layered.trainer as trainer  # noqa: E402
 from layered import Recipe, load_recipe  # noqa: E402
 
@@ -63,7 +64,7 @@ def train_until_stopped(monkeypatch, recipe, out: Path, episodes: int, **kwargs)
 
     stop_at_episode_end(monkeypatch, episodes)
     with pytest.raises(Stopped):
-        trainer.train(recipe, out, **kwargs)
+        runs.train(recipe, out, **kwargs)
     monkeypatch.undo()
 
 

@@ -8,7 +8,7 @@ from layered import load_recipe
 from layered.learners.td3 import resolve_device
 from layered.recipe import RecipeError
 from layered.learner_set import build_learners
-from layered.trainer import resume, train
+from layered.runs import resume, train
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
 

@@ -8,7 +8,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from layered import load_recipe
 from layered.events import tag
-from layered.trainer import resume, train
+from layered.runs import resume, train
 
 
 def test_tags_of_metrics_columns():

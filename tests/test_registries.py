@@ -16,7 +16,8 @@ from layered.envs import FAMILIES
 from layered.learners import LEARNERS
 from layered.orders import ORDERS
 from layered.outputs import OutputLayout
-from layered.trainer import phases_of, train
+from layered.runs import train
+from layered.trainer import phases_of
 
 SMALL = ["learner.hidden=[16, 16]", "learner.batch_size=16", "train.warmup=20",
          "eval.episodes=1", "eval.fresh_episodes=2"]

@@ -11,7 +11,7 @@ import pytest
 from layered import load_recipe
 from layered.report import _steps_axis
 from layered.summary import FinishedRun, Setup, find_runs, group
-from layered.trainer import train
+from layered.runs import train
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",

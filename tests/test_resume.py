@@ -17,7 +17,8 @@ from layered import load_recipe
 from layered.checkpoint import CheckpointError, previous
 from layered.interrupt import Stopped
 from layered.rundir import RunDirError
-from layered.trainer import Diverged, resume, train
+from layered.runs import resume, train
+from layered.trainer import Diverged
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",

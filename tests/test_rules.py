@@ -29,13 +29,26 @@ def output(row, layer, t, episode, size, low, high):
     return rng.uniform(low, high).astype(np.float32)[:size]
 
 
+def decide_by_next_due(rules, obs, policy):
+    """One stack's decisions of a step as the agent view takes them: from each decision to the next due layer."""
+    decided = {i: np.zeros(1, bool) for i in rules.active}
+    i, rows = int(rules.next_due(0)[0]), np.ones(1, bool)
+    while i >= 0:
+        rules.decide(i, policy(i, rules.observation(i, obs), rows), rows)
+        decided[i][0] = True
+        i = int(rules.next_due(i + 1)[0])
+    return decided
+
+
 @pytest.mark.parametrize(("periods", "kinds", "settings"), [
     ([4, 2, 1], ["gate", "residual-clip", "residual-clip"], {"delay": [0, 1, 1]}),
     ([2, 1], "gate", {"learn_from_commits": [False, True], "deviation_penalty": [1.0, 1.0], "defer_penalty": [0.5, 0]}),
     ([4, 1], "residual-clip", {"delay": [1, 1], "action_penalty": [0.0, 1.0]}),
     ([2, 1], "residual-clip", {"max_repeat": [3, 1]}),
+    ([4, 2, 1], ["gate", "gate", "residual-clip"], {"learn_from_commits": [False, False, True]}),
 ])
 def test_rows_stepped_together_are_the_stacks_stepped_alone(periods, kinds, settings):
+    """The batch decides in one pass (`decide_all`); each stack alone walks `next_due` as the agent view does."""
     rows, steps = 5, 40
     lengths = [7, 9, 13, 40, 5]  # each row's episodes end after its own number of steps
     batch = rules_of(periods, kinds, rows, **settings)
@@ -59,7 +72,7 @@ def test_rows_stepped_together_are_the_stacks_stepped_alone(periods, kinds, sett
         shares = batch.layer_rewards(reward, together)
         for r, single in enumerate(alone):
             seen = {i: single.observation(i, obs[r:r + 1])[0] for i in single.active}
-            decided_alone = single.decide_all(obs[r:r + 1], act(r, single.t))
+            decided_alone = decide_by_next_due(single, obs[r:r + 1], act(r, single.t))
             composition = single.compose()
             assert composition.action[0].tolist() == together.action[r].tolist()
             for i in single.active:

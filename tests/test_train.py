@@ -14,7 +14,8 @@ from layered.logs import CsvLog
 from layered.runstate import LoopState
 from layered.learner_set import build_learners
 from layered.results import EPISODE_FIELDS, metrics_fields
-from layered.trainer import Training, phases_of, run_phase, train
+from layered.runs import train
+from layered.trainer import Training, phases_of, run_phase
 
 RECIPES = sorted((Path(__file__).parent.parent / "recipes").rglob("*.toml"))
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
