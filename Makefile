@@ -12,7 +12,7 @@ run: $(VENV)/.installed
 	$(BIN)/layered train $(RECIPE) --out $(OUT)
 
 test: $(VENV)/.installed
-	MUJOCO_GL=egl $(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q
 
 lint: $(VENV)/.installed
 	$(BIN)/ruff check layered envs tests benchmarks

@@ -1,11 +1,10 @@
 """Environment families behind one id scheme, `family:name` (the family defaults to `gym`)."""
 
-import os
+from layered.envs.rendering import RenderingUnavailable, choose_backend
 
-if "DISPLAY" not in os.environ:  # headless: MuJoCo renders through EGL, pygame (classic control) offscreen
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+choose_backend()  # MuJoCo's GL backend, before any family imports MuJoCo
 
+# ruff: noqa: E402  (the families import MuJoCo, which reads the backend on import)
 from layered.envs import dm_control_family as _dm_control_family  # noqa: F401  (registers "dmc")
 from layered.envs import gymnasium_family as _gymnasium_family  # noqa: F401  (registers "gym")
 from layered.envs import robotics_family as _robotics_family  # noqa: F401  (registers "robotics")
@@ -22,6 +21,6 @@ from layered.envs.registry import (
 )
 
 __all__ = [
-    "FAMILIES", "EnvFamily", "EnvInfo", "EnvSpaces", "control_timestep", "env_info", "env_spaces", "make_env",
-    "split_id",
+    "FAMILIES", "EnvFamily", "EnvInfo", "EnvSpaces", "RenderingUnavailable", "control_timestep", "env_info",
+    "env_spaces", "make_env", "split_id",
 ]

@@ -11,6 +11,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.spaces import Box, Space
 
+from layered.envs.rendering import RenderingUnavailable, check_can_render
 from layered.registry import Registry
 
 DEFAULT_FAMILY = "gym"
@@ -55,9 +56,16 @@ def split_id(env_id: str) -> tuple[str, str]:
 
 
 def make_env(env_id: str, render_mode: str | None = None) -> gym.Env:
-    """A new environment for a recipe id."""
+    """A new environment for a recipe id; asked to render where MuJoCo has no GL backend, RenderingUnavailable."""
     family, name = split_id(env_id)
-    return FAMILIES.get(family)().make(name, render_mode=render_mode)
+    env = FAMILIES.get(family)().make(name, render_mode=render_mode)
+    if render_mode is not None:
+        try:
+            check_can_render(type(env.unwrapped).__module__)
+        except RenderingUnavailable:
+            env.close()
+            raise
+    return env
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from typing import Any, NoReturn
 import torch
 
 from layered.checkpoint import CheckpointError
+from layered.envs import RenderingUnavailable
 from layered.export import ExportError
 from layered.interrupt import Stopped
 from layered.plugins import PluginError, load_plugins
@@ -353,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
         for line in e.lines:
             print(f"layered: error: {line}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (CheckpointError, PluginError, RunDirError, ExportError) as e:
+    except (CheckpointError, PluginError, RunDirError, ExportError, RenderingUnavailable) as e:
         return _fail(str(e))
     except Stopped as e:
         print(f"layered: {e}", file=sys.stderr)

@@ -181,12 +181,15 @@ class Rules:
         result = np.full(self.rows, -1, np.int64)
         open_ = self._all.copy()  # rows still walking down the stack
         for position, i in enumerate(self.active):
-            hit = open_ & (i >= start) & self.due(i)
-            result[hit] = i
-            open_ &= ~hit
-            if not _any(open_):
-                break
-            commits = open_ & (self.route(position, i, self.held[i]) == COMMIT)
+            eligible = i >= start  # a bool for one start, a mask for a start per row
+            if eligible is not False:
+                hit = open_ & self.due(i) if eligible is True else open_ & eligible & self.due(i)
+                result[hit] = i
+                open_ &= ~hit
+                if not _any(open_):
+                    break
+            route = self.route(position, i, self.held[i])
+            commits = open_ & (route == COMMIT) if _any(route) else self._none  # (ADD is 0)
             if _any(commits):  # never the last layer: it only adds
                 below = self.active[position + 1]
                 if self.layers[below].learns_from_commits:

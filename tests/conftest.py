@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
 import pytest
 import torch
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 torch.set_num_threads(1)
 
 import layered.runs as runs  # noqa: E402

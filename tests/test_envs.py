@@ -81,9 +81,31 @@ def test_unknown_environments_are_clear_errors():
 
 @pytest.mark.parametrize("env_id", ["gym:InvertedPendulum-v5", "dmc:cartpole-swingup", "robotics:PointMaze_UMaze-v3"])
 def test_headless_rendering(env_id):
-    assert os.environ.get("MUJOCO_GL") in ("egl", "osmesa")
+    if os.environ.get("MUJOCO_GL") == "disable":
+        pytest.skip("no OpenGL library (EGL or OSMesa) on this machine")
     env = envs.make_env(env_id, render_mode="rgb_array")
     env.reset(seed=0)
     frame = env.render()
     env.close()
     assert frame.ndim == 3 and frame.shape[2] == 3 and frame.any()
+
+
+def test_without_an_opengl_library_mujoco_steps_and_rendering_is_refused_in_one_line():
+    """A machine with no display and neither EGL nor OSMesa: nothing GL is loaded to step Hopper, and
+    asking it to render names what to install."""
+    import subprocess
+    import sys
+
+    script = (
+        "import ctypes.util, os; ctypes.util.find_library = lambda name: None; "
+        "os.environ.pop('DISPLAY', None); os.environ.pop('MUJOCO_GL', None)\n"
+        "from layered.envs import RenderingUnavailable, make_env\n"
+        "env = make_env('Hopper-v5'); env.reset(seed=0); env.step(env.action_space.sample()); env.close()\n"
+        "print(os.environ['MUJOCO_GL'])\n"
+        "try:\n    make_env('dmc:cartpole-swingup', render_mode='rgb_array')\n"
+        "except RenderingUnavailable as e:\n    print(e)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY")}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+    backend, message = done.stdout.strip().splitlines()
+    assert backend == "disable" and "apt install libegl1" in message

@@ -1,0 +1,79 @@
+"""TD3 updates of K seeds: as one computation (`TD3Group`) against K single learners one after the other,
+side by side in one process, on this machine.
+
+    python benchmarks/group_update.py                       # Pendulum's shapes, 400-300, batch 256, one thread
+    python benchmarks/group_update.py --obs 11 --act 3      # Hopper's shapes
+    python benchmarks/group_update.py --device cuda --threads 16
+
+Each K is timed over the same number of update rounds after a warm-up, the two ways alternating
+three times; the table gives the best of the three, seed-updates per second and the group's speed-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from gymnasium.spaces import Box
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--obs", type=int, default=3)
+    parser.add_argument("--act", type=int, default=1)
+    parser.add_argument("--seeds", default="1,4,16,64", help="comma-separated K")
+    parser.add_argument("--rounds", type=int, default=20, help="updates of every seed per timing")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    from layered.buffer import Transition
+    from layered.learners.td3 import TD3, TD3Config
+    from layered.learners.td3_group import TD3Group
+    from layered.outputs import OutputLayout
+
+    obs_space = Box(-1.0, 1.0, (args.obs,), np.float32)
+    act_space = Box(-1.0, 1.0, (args.act,), np.float32)
+    config = TD3Config(buffer_size=2000, device=args.device)
+    rng = np.random.default_rng(0)
+    print(f"| K | K single learners, seed-updates/s | one group, seed-updates/s | group speed-up |\n|---|---|---|---|")
+    for k in (int(x) for x in args.seeds.split(",")):
+        singles = [TD3(obs_space, act_space, OutputLayout(args.act), config, seed) for seed in range(k)]
+        group = TD3Group([TD3(obs_space, act_space, OutputLayout(args.act), config, seed) for seed in range(k)])
+        for _ in range(1000):
+            obs = rng.uniform(-1, 1, (k, args.obs)).astype(np.float32)
+            action = rng.uniform(-1, 1, (k, args.act)).astype(np.float32)
+            reward = rng.normal(size=k)
+            group.observe(obs, action, reward, obs, np.zeros(k, bool), np.full(k, 0.99))
+            for s, single in enumerate(singles):
+                single.observe(Transition(obs[s], action[s], float(reward[s]), obs[s], False, 0.99))
+
+        def singly() -> None:
+            for _ in range(args.rounds):
+                for single in singles:
+                    single.update()
+
+        def together() -> None:
+            for _ in range(args.rounds):
+                group.update()
+
+        best = {singly: float("inf"), together: float("inf")}
+        for run in (singly, together):
+            run()  # warm-up
+        for _ in range(3):
+            for run in (singly, together):
+                if args.device == "cuda":
+                    torch.cuda.synchronize()
+                start = time.perf_counter()
+                run()
+                if args.device == "cuda":
+                    torch.cuda.synchronize()
+                best[run] = min(best[run], time.perf_counter() - start)
+        rate = {run: k * args.rounds / seconds for run, seconds in best.items()}
+        print(f"| {k} | {rate[singly]:.0f} | {rate[together]:.0f} | {rate[together] / rate[singly]:.2f}× |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,85 @@
+"""TD3 for K seeds as one computation: each seed acts, learns and checkpoints as its own TD3 learner."""
+
+import numpy as np
+import pytest
+import torch
+from gymnasium.spaces import Box
+
+from layered.buffer import Batch
+from layered.learners.td3 import TD3, TD3Config
+from layered.learners.td3_group import TD3Group
+from layered.outputs import OutputLayout
+
+OBS = Box(-1.0, 1.0, (3,), np.float32)
+ACT = Box(np.array([-2.0, 0.0], np.float32), np.array([2.0, 1.0], np.float32))
+CONFIG = TD3Config(hidden=(32, 16), batch_size=8, buffer_size=100)
+
+
+def learners(seeds, config=CONFIG):
+    return [TD3(OBS, ACT, OutputLayout(2), config, seed) for seed in seeds]
+
+
+def fill(group, seeds, steps=20, shift=0.0):
+    """The same made-up transitions into the group's buffers, seed k's offset by k (and `shift` for seed 1)."""
+    rng = np.random.default_rng(0)
+    for _ in range(steps):
+        obs = rng.uniform(-1, 1, (len(seeds), 3)).astype(np.float32) + np.arange(len(seeds))[:, None] * 0.1
+        obs[1:2] += shift
+        action = rng.uniform(ACT.low, ACT.high, (len(seeds), 2)).astype(np.float32)
+        group.observe(obs, action, rng.normal(size=len(seeds)), obs * 0.5, rng.random(len(seeds)) < 0.1,
+                      np.full(len(seeds), 0.99))
+
+
+def test_a_group_acts_as_its_seeds_learners():
+    singles = learners([0, 1, 2])
+    group = TD3Group(singles)
+    obs = np.random.default_rng(1).uniform(-1, 1, (3, 3)).astype(np.float32)
+    acted = group.act(obs, explore=False)
+    for k, single in enumerate(singles):
+        assert acted[k] == pytest.approx(single.act(obs[k], explore=False), abs=1e-6)
+    explored = group.act(obs, explore=True)
+    assert np.all((explored >= ACT.low) & (explored <= ACT.high)) and not np.allclose(explored, acted)
+
+
+def test_one_update_of_the_group_is_each_seeds_own_update():
+    singles = learners([0, 1, 2])
+    group = TD3Group(singles)
+    fill(group, [0, 1, 2])
+    batch = group.sample()
+    noise = torch.randn(batch[1].shape, generator=torch.Generator().manual_seed(3))
+    critic = group.critic_step(batch, noise)
+    actor = group.actor_step(batch[0])
+    for k, single in enumerate(singles):
+        mine = Batch(*(part[k] for part in batch))
+        assert float(critic[k]) == pytest.approx(float(single._critic_step_eager(mine, noise[k])), rel=1e-5)
+        assert float(actor[k]) == pytest.approx(float(single._actor_step_eager(mine.obs)), rel=1e-5)
+        state = group.seed_state_dict(k)
+        for part in ("actor", "critic", "actor_target", "critic_target"):
+            theirs = getattr(single, part).state_dict()
+            for key, value in theirs.items():
+                assert torch.allclose(state[part][key], value, atol=1e-6), f"seed {k} {part}.{key}"
+
+
+def test_seeds_never_mix():
+    """Seed 0's update does not depend on what seed 1 stored (same group seed: same indices and noise)."""
+    a, b = TD3Group(learners([0, 1])), TD3Group(learners([0, 1]))
+    fill(a, [0, 1])
+    fill(b, [0, 1], shift=0.5)
+    for _ in range(4):
+        a.update()
+        b.update()
+    assert all(torch.equal(x[0], y[0]) for x, y in zip(a.actor.parameters(), b.actor.parameters(), strict=True))
+    assert not all(torch.equal(x[1], y[1]) for x, y in zip(a.actor.parameters(), b.actor.parameters(), strict=True))
+
+
+def test_a_seeds_state_is_an_ordinary_td3_checkpoint():
+    group = TD3Group(learners([4, 5]))
+    fill(group, [4, 5])
+    losses = [group.update() for _ in range(4)]
+    assert [set(x) for x in losses] == [{"critic"}, {"critic", "actor"}] * 2 and losses[0]["critic"].shape == (2,)
+    obs = np.full((2, 3), 0.3, np.float32)
+    for k, seed in enumerate([4, 5]):
+        single = learners([seed])[0]
+        single.load_state_dict(group.seed_state_dict(k))  # strict: every key and shape of a TD3 state
+        assert single.act(obs[k], explore=False) == pytest.approx(group.act(obs, explore=False)[k], abs=1e-6)
+        assert single.updates == 4
