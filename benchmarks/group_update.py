@@ -38,7 +38,7 @@ def main() -> None:
     act_space = Box(-1.0, 1.0, (args.act,), np.float32)
     config = TD3Config(buffer_size=2000, device=args.device)
     rng = np.random.default_rng(0)
-    print(f"| K | K single learners, seed-updates/s | one group, seed-updates/s | group speed-up |\n|---|---|---|---|")
+    print("| K | K single learners, seed-updates/s | one group, seed-updates/s | group speed-up |\n|---|---|---|---|")
     for k in (int(x) for x in args.seeds.split(",")):
         singles = [TD3(obs_space, act_space, OutputLayout(args.act), config, seed) for seed in range(k)]
         group = TD3Group([TD3(obs_space, act_space, OutputLayout(args.act), config, seed) for seed in range(k)])
@@ -50,29 +50,30 @@ def main() -> None:
             for s, single in enumerate(singles):
                 single.observe(Transition(obs[s], action[s], float(reward[s]), obs[s], False, 0.99))
 
-        def singly() -> None:
-            for _ in range(args.rounds):
-                for single in singles:
-                    single.update()
-
-        def together() -> None:
-            for _ in range(args.rounds):
-                group.update()
-
-        best = {singly: float("inf"), together: float("inf")}
-        for run in (singly, together):
-            run()  # warm-up
+        ways = {"singly": [single.update for single in singles], "together": [group.update]}
+        best = dict.fromkeys(ways, float("inf"))
+        for updates in ways.values():  # warm-up
+            for update in updates:
+                update()
         for _ in range(3):
-            for run in (singly, together):
-                if args.device == "cuda":
-                    torch.cuda.synchronize()
-                start = time.perf_counter()
-                run()
-                if args.device == "cuda":
-                    torch.cuda.synchronize()
-                best[run] = min(best[run], time.perf_counter() - start)
-        rate = {run: k * args.rounds / seconds for run, seconds in best.items()}
-        print(f"| {k} | {rate[singly]:.0f} | {rate[together]:.0f} | {rate[together] / rate[singly]:.2f}× |", flush=True)
+            for way, updates in ways.items():
+                best[way] = min(best[way], timed(updates, args.rounds, args.device))
+        rate = {way: k * args.rounds / seconds for way, seconds in best.items()}
+        print(f"| {k} | {rate['singly']:.0f} | {rate['together']:.0f} | {rate['together'] / rate['singly']:.2f}x |",
+              flush=True)
+
+
+def timed(updates: list, rounds: int, device: str) -> float:
+    """Seconds for `rounds` rounds of the `updates` (each a call), the device's queue drained at both ends."""
+    if device == "cuda":
+        torch.cuda.synchronize()
+    start = time.perf_counter()
+    for _ in range(rounds):
+        for update in updates:
+            update()
+    if device == "cuda":
+        torch.cuda.synchronize()
+    return time.perf_counter() - start
 
 
 if __name__ == "__main__":
