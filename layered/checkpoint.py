@@ -1,22 +1,28 @@
-"""Checkpoints: tensors plus a format version, written atomically, loaded weights-only.
+"""Checkpoints: tensors plus a format version, written atomically, verified by a checksum, loaded
+weights-only.
 
-A run's training state keeps its previous checkpoint beside the newest, so a checkpoint that
-turns out unreadable costs one checkpoint interval, not the run.
+A checkpoint file is one header line, `LAYERED-CHECKPOINT <format> <sha256 of the rest>`, then what
+torch.save wrote; a file damaged anywhere, header included, fails the check and is refused by name.
+A run's training state keeps its previous checkpoint beside the newest, so a damaged or unreadable
+one costs one checkpoint interval, not the run. Files of format 2 (no header, no checksum) still load.
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
 import os
 import pickle
 import sys
 import tempfile
-from pathlib import Path
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, BinaryIO
 
 import torch
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+MAGIC = b"LAYERED-CHECKPOINT"
 
 
 class CheckpointError(RuntimeError):
@@ -56,8 +62,10 @@ def save_checkpoint(path: Path, layer: str, state: dict[str, Any], keep_previous
 
     With `keep_previous` the file it replaces is kept as `previous(path)`.
     """
-    data = {"format_version": FORMAT_VERSION, "layer": layer, "state": state}
-    _write_atomically(path, lambda f: torch.save(data, f), keep_previous)
+    body = io.BytesIO()
+    torch.save({"format_version": FORMAT_VERSION, "layer": layer, "state": state}, body)
+    header = b"%s %d %s\n" % (MAGIC, FORMAT_VERSION, hashlib.sha256(body.getbuffer()).hexdigest().encode())
+    _write_atomically(path, lambda f: f.write(header + body.getbuffer()), keep_previous)
 
 
 def load_checkpoint(path: Path, layer: str) -> dict[str, Any]:
@@ -65,15 +73,33 @@ def load_checkpoint(path: Path, layer: str) -> dict[str, Any]:
     if not path.exists():
         raise CheckpointError(f"{path}: no checkpoint for layer {layer!r}")
     try:
-        data = torch.load(path, weights_only=True, map_location="cpu")  # learners move what they load to their device
+        content = path.read_bytes()
+    except OSError as e:
+        raise CheckpointError(f"{path}: cannot be read ({e.strerror or e})") from None
+    body = _verified_body(path, content)
+    try:  # learners move what they load to their device
+        data = torch.load(io.BytesIO(body), weights_only=True, map_location="cpu")
     except (RuntimeError, EOFError, pickle.UnpicklingError, ValueError, OSError) as e:
         raise CheckpointError(f"{path}: not a readable checkpoint ({e.__class__.__name__}: {e})") from None
     if not isinstance(data, dict) or data.get("layer") != layer:
         raise CheckpointError(f"{path}: not a checkpoint of {layer!r}")
-    if data.get("format_version") != FORMAT_VERSION:
+    if data.get("format_version") not in (2, FORMAT_VERSION):
         raise CheckpointError(f"{path}: written in checkpoint format {data.get('format_version')}, this layered "
                               f"reads format {FORMAT_VERSION}")
     return data["state"]
+
+
+def _verified_body(path: Path, content: bytes) -> bytes:
+    """What torch.save wrote, after checking the header's checksum (a format-2 file has neither)."""
+    if content.startswith(b"PK"):  # format 2: a bare zip archive
+        return content
+    header, newline, body = content.partition(b"\n")
+    parts = header.split(b" ")
+    if not newline or len(parts) != 3 or parts[0] != MAGIC:
+        raise CheckpointError(f"{path}: not a checkpoint (damaged or of another program)")
+    if hashlib.sha256(body).hexdigest().encode() != parts[2]:
+        raise CheckpointError(f"{path}: damaged (its checksum does not match its content)")
+    return body
 
 
 def load_latest(path: Path, layer: str) -> dict[str, Any] | None:

@@ -253,7 +253,7 @@ def _export(args: argparse.Namespace) -> int:
     from layered.export import export_stack
     from layered.latency import compare
     from layered.learner_set import load_learners
-    from layered.rundir import run_plugins
+    from layered.rundir import run_plugins, warn_if_being_written
     from layered.trainer import phases_of
 
     if args.threshold is not None and args.threshold < 0:
@@ -261,6 +261,7 @@ def _export(args: argparse.Namespace) -> int:
     if args.format == "onnx" and not _installed("onnxruntime", "onnxscript"):
         return _fail("--format onnx needs the extra layered[onnx]: pip install -e '.[onnx]' in the checkout")
     load_plugins(run_plugins(args.run_dir) + args.plugin)
+    warn_if_being_written(args.run_dir)
     recipe = load_recipe(args.run_dir / "recipe.toml")
     active = list(phases_of(recipe)[-1].active)
     learners = load_learners(recipe, args.run_dir, args.weights)

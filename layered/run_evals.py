@@ -43,10 +43,11 @@ def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | Non
     """The run in `run_dir` with each phase's `final` or `best` weights (default: its train.select),
     after importing the plugins it was trained with and `plugins`."""
     from layered.learner_set import load_learners
-    from layered.rundir import run_plugins
+    from layered.rundir import run_plugins, warn_if_being_written
     from layered.trainer import phases_of
 
     load_plugins(run_plugins(run_dir) + list(plugins or []))  # refuses a directory that holds no run
+    warn_if_being_written(run_dir)
     recipe = load_recipe(run_dir / "recipe.toml")
     return TrainedRun(run_dir, recipe, load_learners(recipe, run_dir, weights), list(phases_of(recipe)[-1].active))
 

@@ -1,17 +1,26 @@
 """The run directory's identity: the resolved recipe and how the run was started, written before
-training, and the rule that a directory holding a run is never silently started over."""
+training; the rule that a directory holding a run is never silently started over; and one writer at
+a time, by an OS lock that dies with the process holding it."""
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
 import shutil
+import socket
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 from layered.checkpoint import previous, write_atomically
 
+LOCK_FILE = ".lock"
+_HELD: set[Path] = set()  # the run directories this process writes
 RUN_FILES = ("recipe.toml", "run.json", "metrics.csv", "episodes.csv", "results.json", "results.md", "curves.png",
-             "checkpoints", "eval", "train.log")
+             "checkpoints", "eval", "train.log", LOCK_FILE)
 
 
 class RunDirError(ValueError):
@@ -33,31 +42,92 @@ def has_progress(run_dir: Path) -> bool:
     return any(p.exists() for p in (run_dir / "results.json", run_state, previous(run_state)))
 
 
+@contextmanager
+def writing(run_dir: Path) -> Iterator[None]:
+    """Hold the run directory's lock while writing it (creating the directory): a second writer is
+    refused, naming the first. The lock is the operating system's, released when its holder ends,
+    however it ends, so a killed run never leaves a stale one."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(run_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 500).decode(errors="replace").strip() or "another process"
+        os.close(fd)
+        raise RunDirError(f"{run_dir} is being written by {holder}; wait for it to end, or stop it") from None
+    try:
+        os.ftruncate(fd, 0)
+        command = " ".join(["layered", *sys.argv[1:]])[:200]
+        os.write(fd, f"process {os.getpid()} on {socket.gethostname()} ({command})".encode())
+        _HELD.add(run_dir.resolve())
+        yield
+    finally:
+        _HELD.discard(run_dir.resolve())
+        os.close(fd)  # releases the lock
+
+
+def writer(run_dir: Path) -> str | None:
+    """Which other process is writing the run directory now (as its lock names it), or None; takes
+    nothing from it."""
+    if run_dir.resolve() in _HELD:
+        return None
+    try:
+        fd = os.open(run_dir / LOCK_FILE, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return os.read(fd, 500).decode(errors="replace").strip() or "another process"
+    finally:
+        os.close(fd)
+    return None
+
+
+def warn_if_being_written(run_dir: Path) -> None:
+    """Say, in one line, that a run read for evaluation or export is still being trained: its layer
+    checkpoints are whole (each written atomically) but of the phases finished so far."""
+    if (holder := writer(run_dir)) is not None:
+        print(f"layered: note: {run_dir} is being trained by {holder}; using its checkpoints as they stand",
+              file=sys.stderr)
+
+
+def foreign_files(run_dir: Path) -> list[str]:
+    """The names in a directory that are not a run's files."""
+    return sorted(p.name for p in run_dir.iterdir() if p.name not in RUN_FILES)
+
+
 def check_new_run_dir(run_dir: Path) -> None:
-    """Refuse a directory that holds a run with progress, or files that are not a run's."""
+    """Refuse a directory that is being written, holds a run with progress, or files that are not a run's."""
     if not run_dir.exists():
         return
     if not run_dir.is_dir():
         raise RunDirError(f"{run_dir} is a file, not a directory")
+    if (holder := writer(run_dir)) is not None:
+        raise RunDirError(f"{run_dir} is being written by {holder}; wait for it to end, or stop it")
     if (run_dir / "results.json").exists():
         raise RunDirError(f"{run_dir} holds a finished run; choose another --out, or --force to start over")
     if has_progress(run_dir):
         raise RunDirError(f"{run_dir} holds a stopped run; continue it with `layered resume {run_dir}`, "
                           "or --force to start over")
-    foreign = sorted(p.name for p in run_dir.iterdir() if p.name not in RUN_FILES)
-    if foreign:
+    if foreign := foreign_files(run_dir):
         raise RunDirError(f"{run_dir} holds files that are not a run's ({', '.join(foreign[:3])}); "
                           "choose another --out")
 
 
 def clear_run_dir(run_dir: Path) -> None:
-    """Remove a run's own files (for --force), leaving anything else in the directory."""
-    for name in RUN_FILES:
-        path = run_dir / name
-        if path.is_dir():
-            shutil.rmtree(path)
-        else:
-            path.unlink(missing_ok=True)
+    """Remove a run's own files (for --force), under the run's lock: refused before anything is
+    removed where another process writes the run or where the directory holds files of another kind."""
+    if foreign := foreign_files(run_dir):
+        raise RunDirError(f"{run_dir} holds files that are not a run's ({', '.join(foreign[:3])}); --force "
+                          "starts a run over only in a directory of its own: choose another --out")
+    with writing(run_dir):
+        for name in RUN_FILES:
+            path = run_dir / name
+            if path.is_dir():
+                shutil.rmtree(path)
+            elif name != LOCK_FILE:
+                path.unlink(missing_ok=True)
 
 
 def prepare_run_dir(run_dir: Path, recipe_text: str, info: RunInfo, resume: bool) -> None:

@@ -18,7 +18,16 @@ from layered.learner_set import build_learners, keep_start_weights, start_from_w
 from layered.logs import CsvLog
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.results import EPISODE_FIELDS, metrics_fields, write_results
-from layered.rundir import RunDirError, RunInfo, has_progress, prepare_run_dir, read_run_info
+from layered.learners import Learner
+from layered.rundir import (
+    RunDirError,
+    RunInfo,
+    check_new_run_dir,
+    has_progress,
+    prepare_run_dir,
+    read_run_info,
+    writing,
+)
 from layered.runstate import LoopState, load_state
 from layered.trainer import Training, phase_budget, phases_of, train_phases
 
@@ -64,6 +73,16 @@ def train(
     learners = build_learners(recipe)
     if not (resume and has_progress(out)):
         start_from_weights(recipe, learners)  # a bad `weights` file is refused before anything is written
+    if not resume:
+        check_new_run_dir(out)  # before the lock creates the directory
+    with writing(out):
+        return _train_in(out, recipe, learners, info, resume, progress)
+
+
+def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: RunInfo, resume: bool,
+              progress: bool = True) -> list[dict[str, Any]]:
+    """`train`, from the run directory on, while this process holds its lock."""
+    max_steps = info.max_steps
     prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # so that a run killed early resumes
     checkpoint = out / "checkpoints" / "run.pt"
     state = load_state(checkpoint, learners, resolved(recipe), max_steps)

@@ -11,6 +11,7 @@ import torch
 torch.set_num_threads(1)
 
 import layered.runs as runs  # noqa: E402
+from layered.checkpoint import load_checkpoint  # noqa: E402
 import layered.trainer as trainer  # noqa: E402
 from layered import Recipe, load_recipe  # noqa: E402
 
@@ -41,7 +42,8 @@ def assert_same_run(a: Path, b: Path) -> None:
     layers = sorted(p.name for p in (a / "checkpoints").glob("*.pt") if not p.name.startswith("run"))
     assert layers == sorted(p.name for p in (b / "checkpoints").glob("*.pt") if not p.name.startswith("run"))
     for name in layers:
-        x, y = (torch.load(d / "checkpoints" / name, weights_only=True)["state"] for d in (a, b))
+        layer = name.split(".")[0]
+        x, y = (load_checkpoint(d / "checkpoints" / name, layer) for d in (a, b))
         assert_same_state(x, y, name)
 
 

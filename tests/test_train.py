@@ -12,6 +12,7 @@ from layered import load_recipe
 from layered.interrupt import StopRequest
 from layered.logs import CsvLog
 from layered.runstate import LoopState
+from layered.checkpoint import load_checkpoint
 from layered.learner_set import build_learners
 from layered.results import EPISODE_FIELDS, metrics_fields
 from layered.runs import train
@@ -111,7 +112,7 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == before
     (out / "checkpoints" / "fast.best.pt").write_bytes(b"\0" * 10)  # the recipe hands on its best weights
     proc = layered_cli("eval", out)
-    assert proc.returncode == 2 and "not a readable checkpoint" in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.returncode == 2 and "not a checkpoint" in proc.stderr and "Traceback" not in proc.stderr
 
 
 def first_phase(recipe, out: Path, steps: int):
@@ -157,9 +158,9 @@ def test_each_phase_keeps_final_and_best_weights_reports_both_fresh_and_hands_on
         measures = ("return_mean", "return_std", "repetition", "decisions")
         assert {f"fresh_{weights}_{k}" for weights in ("final", "best") for k in measures} <= set(row)
     assert "Final and best weights of each phase" in (tmp_path / "results.md").read_text()
-    slow = {name: torch.load(tmp_path / "checkpoints" / name, weights_only=True)["state"]["actor"]
+    slow = {name: load_checkpoint(tmp_path / "checkpoints" / name, "slow")["actor"]
             for name in ("slow.pt", "slow.best.pt")}
-    handed_on = torch.load(tmp_path / "checkpoints" / "run.pt", weights_only=True)["state"]["learners"]["slow"]
+    handed_on = load_checkpoint(tmp_path / "checkpoints" / "run.pt", "run")["learners"]["slow"]
     chosen = slow["slow.best.pt" if select == "best" else "slow.pt"]
     assert all(torch.equal(chosen[k], handed_on["policy"]["actor"][k]) for k in chosen)
     if rows[0]["best_step"] != rows[0]["steps"]:  # the best was not the last evaluation: the two differ
@@ -173,7 +174,7 @@ def test_a_layer_starts_from_another_runs_weights_and_the_run_keeps_a_copy(tmp_p
     from layered.learner_set import load_learners
 
     train(load_recipe(PENDULUM / "tla-c.toml", TINY), tmp_path / "a", max_steps=300, progress=False)
-    source = torch.load(tmp_path / "a" / "checkpoints" / "slow.best.pt", weights_only=True)["state"]["actor"]
+    source = load_checkpoint(tmp_path / "a" / "checkpoints" / "slow.best.pt", "slow")["actor"]
     recipe_file = tmp_path / "recipes" / "fast-on-a.toml"  # `weights` is relative to the file that sets it
     recipe_file.parent.mkdir()
     recipe_file.write_text(f'extends = "{PENDULUM / "tla-c.toml"}"\n'

@@ -1,0 +1,96 @@
+"""Runs nothing can corrupt: one writer per run directory, checkpoints verified by a checksum, and a
+--force that deletes nothing it may not."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from layered.checkpoint import CheckpointError, load_checkpoint, load_latest, save_checkpoint
+from layered.cli import main
+from layered.rundir import RunDirError, RunInfo, prepare_run_dir, writer, writing
+
+STATE = {"w": torch.arange(12.0).reshape(3, 4), "step": 7}
+
+
+def test_a_checkpoint_damaged_anywhere_is_refused(tmp_path):
+    path = tmp_path / "layer.pt"
+    save_checkpoint(path, "fast", STATE)
+    good = path.read_bytes()
+    assert torch.equal(load_checkpoint(path, "fast")["w"], STATE["w"])
+    for offset in np.random.default_rng(0).integers(0, len(good), 64):
+        damaged = bytearray(good)
+        damaged[offset] ^= 0xA5
+        path.write_bytes(bytes(damaged))
+        with pytest.raises(CheckpointError, match=r"damaged|not a checkpoint|not a readable"):
+            load_checkpoint(path, "fast")
+
+
+def test_a_damaged_newest_checkpoint_gives_way_to_the_previous_one_and_two_are_refused(tmp_path, capsys):
+    path = tmp_path / "run.pt"
+    save_checkpoint(path, "run", {"step": 1}, keep_previous=True)
+    save_checkpoint(path, "run", {"step": 2}, keep_previous=True)
+    content = bytearray(path.read_bytes())
+    content[len(content) // 2] ^= 0xFF
+    path.write_bytes(bytes(content))
+    assert load_latest(path, "run") == {"step": 1}
+    assert "damaged (its checksum does not match its content); using the previous checkpoint" in capsys.readouterr().err
+    previous = path.with_name("run.prev.pt")
+    previous.write_bytes(previous.read_bytes()[:-10])
+    with pytest.raises(CheckpointError, match="no usable checkpoint is left"):
+        load_latest(path, "run")
+
+
+def test_one_writer_per_run_directory(tmp_path):
+    with writing(tmp_path / "run"):
+        assert writer(tmp_path / "run") is None  # no other writer
+        with pytest.raises(RunDirError, match=f"is being written by process {os.getpid()}"), writing(tmp_path / "run"):
+            pass
+    assert writer(tmp_path / "run") is None
+
+
+def hold_lock(run_dir):
+    """A process that holds the run directory's lock until it is killed."""
+    script = ("import sys, time; from pathlib import Path; from layered.rundir import writing\n"
+              "with writing(Path(sys.argv[1])):\n    print('held', flush=True); time.sleep(120)")
+    holder = subprocess.Popen([sys.executable, "-c", script, str(run_dir)], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_a_second_writer_is_refused_in_one_line_and_a_killed_writer_leaves_no_lock(tmp_path, capsys):
+    run = tmp_path / "run"
+    prepare_run_dir(run, "[env]\nid = 'Pendulum-v1'\n[[layers]]\nname = 'fast'\nperiod = 1\n",
+                    RunInfo("run", None), resume=False)
+    holder = hold_lock(run)
+    try:
+        assert main(["resume", str(run)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 2 and f"is being written by process {holder.pid}" in err[1]  # "resuming ...", then why not
+        assert main(["train", "recipes/pendulum/td3.toml", "--out", str(run)]) == 2
+        assert f"is being written by process {holder.pid}" in capsys.readouterr().err
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(timeout=30)
+    deadline = time.monotonic() + 10
+    while writer(run) is not None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert writer(run) is None  # the kernel released it with the process
+
+
+def test_force_deletes_nothing_in_a_directory_that_holds_files_of_another_kind(tmp_path, capsys):
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "results.json").write_text(json.dumps({"phases": []}))
+    (run / "checkpoints" / "fast.pt").write_bytes(b"weights")
+    (run / "notes.txt").write_text("mine")
+    assert main(["train", "recipes/pendulum/td3.toml", "--out", str(run), "--force"]) == 2
+    assert "notes.txt" in capsys.readouterr().err
+    assert (run / "results.json").exists() and (run / "checkpoints" / "fast.pt").exists()
+    assert (run / "notes.txt").read_text() == "mine"
