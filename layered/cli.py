@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -27,11 +28,19 @@ EXIT_DIVERGED = 1
 EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
 
 
-def _thresholds(text: str) -> list[float]:
+def _threshold(text: str) -> float:
+    """An evaluation threshold: a finite number >= 0 (NaN would silently turn thresholding off)."""
     try:
-        return [float(x) for x in text.split(",") if x.strip()]
+        value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"a threshold is a finite number >= 0, got {text!r}")
+    return value
+
+
+def _thresholds(text: str) -> list[float]:
+    return [_threshold(x.strip()) for x in text.split(",") if x.strip()]
 
 
 def _plugin_option(parser: argparse.ArgumentParser, note: str = "") -> None:
@@ -84,7 +93,7 @@ def _parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("eval", help="evaluate a trained run directory")
     ev.add_argument("run_dir", type=Path, help="run directory of a trained run")
     ev.add_argument("--episodes", type=_positive, help="episodes (default: the recipe's eval.episodes)")
-    ev.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
+    ev.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--weights", choices=["final", "best"],
                     help="each phase's final weights or those of its best evaluation (default: the recipe's "
                     "train.select)")
@@ -108,7 +117,7 @@ def _parser() -> argparse.ArgumentParser:
     ex.add_argument("--out", type=Path, help="export directory (default RUN_DIR/export-FORMAT)")
     ex.add_argument("--weights", choices=["final", "best"],
                     help="each phase's final or best weights (default: the recipe's train.select)")
-    ex.add_argument("--threshold", type=float, help="evaluation threshold as a fraction of max action")
+    ex.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
     ex.add_argument("--episodes", type=_positive, default=3,
                     help="episodes on which the export is checked against the library and timed (default 3)")
     _plugin_option(ex, "besides those the run was trained with")
@@ -186,10 +195,6 @@ def _finished(out: Path) -> int:
 def _eval(args: argparse.Namespace) -> int:
     from layered.run_evals import gallery, open_run, threshold_sweep
 
-    sweep = [args.threshold] if args.threshold is not None else []
-    sweep += args.threshold_sweep or []
-    if any(t < 0 for t in sweep):
-        return _fail("thresholds must be >= 0")
     run = open_run(args.run_dir, args.weights, args.plugin)
     if args.gallery == "":
         args.gallery = run.active[-1]
@@ -256,8 +261,6 @@ def _export(args: argparse.Namespace) -> int:
     from layered.rundir import run_plugins, warn_if_being_written
     from layered.trainer import phases_of
 
-    if args.threshold is not None and args.threshold < 0:
-        return _fail("--threshold must be >= 0")
     if args.format == "onnx" and not _installed("onnxruntime", "onnxscript"):
         return _fail("--format onnx needs the extra layered[onnx]: pip install -e '.[onnx]' in the checkout")
     load_plugins(run_plugins(args.run_dir) + args.plugin)

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from layered.combiners import COMBINERS
 from layered.envs import env_info
-from layered.learners import LEARNERS, LearnerConfig
+from layered.learners import LEARNERS, Flag, LearnerConfig, Whole
 from layered.outputs import OutputLayout
 
 
@@ -52,7 +52,7 @@ class CombineConfig(Section):
     eval_threshold: float = Field(default=0.3, ge=0)
     """At evaluation, lower residual contributions whose effect is below this fraction of the
     maximum action are zeroed; 0 disables thresholding."""
-    per_dimension: bool = False
+    per_dimension: Flag = False
     """Threshold each action dimension on its own instead of all dimensions together."""
 
 
@@ -61,13 +61,13 @@ class LayerConfig(Section):
 
     name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_-]*$")
     """Unique name, used in `sees`, in phases and as the agent's name."""
-    period: int | None = Field(default=None, gt=0)
+    period: Whole | None = Field(default=None, gt=0)
     """Base environment steps between decisions; must divide the period of the layer above."""
     response_time: float | None = Field(default=None, gt=0)
     """The period in seconds instead of steps; must be a whole number of the env's control timestep."""
-    delay: int = Field(default=0, ge=0)
+    delay: Whole = Field(default=0, ge=0)
     """Decisions between choosing an action and its taking effect (1: the real-time setting)."""
-    max_repeat: int = Field(default=1, ge=1)
+    max_repeat: Whole = Field(default=1, ge=1)
     """Above 1 the layer also chooses for how many of its periods (1..max_repeat) to hold its
     output before deciding again, as TempoRL's skip policy; its output gains that count."""
     sees: list[str] = ["obs"]
@@ -91,12 +91,12 @@ class LayerConfig(Section):
     deviation_penalty: float = Field(default=0.0, ge=0)
     """Reward penalty per step: this times mean |executed action - action proposed by the
     nearest deferring gate at or above this layer| / max action (j)."""
-    warmup: int | None = Field(default=None, ge=0)
+    warmup: Whole | None = Field(default=None, ge=0)
     """Decisions this layer takes uniformly at random before it learns; default `train.warmup`."""
-    updates: int = Field(default=1, gt=0)
+    updates: Whole = Field(default=1, gt=0)
     """Gradient updates of the layer's learner after each of its decisions once it learns; with
     `updates = period`, one per base step, as the authors' jointly trained slow layer and gate make."""
-    learn_from_commits: bool = False
+    learn_from_commits: Flag = False
     """For the layer right below a gate: in training, while the gate commits, the layer still
     decides at its period, and the executed action is recorded as its decision, so that it learns
     from every step, as the authors' jointly trained fast layer does (otherwise it learns only
@@ -116,7 +116,7 @@ class PhaseConfig(Section):
     """Layers that learn in this phase."""
     active: list[str] | None = None
     """Layers present in this phase; default: `learn` plus every layer trained before."""
-    steps: int | None = Field(default=None, gt=0)
+    steps: Whole | None = Field(default=None, gt=0)
     """Base environment steps of this phase; default `train.steps_per_phase`."""
 
 
@@ -128,22 +128,22 @@ class TrainConfig(Section):
     phase), or `explicit` (with `phases`); or any registered one."""
     phases: list[PhaseConfig] | None = None
     """Explicit phases; giving them selects the `explicit` order."""
-    steps_per_phase: int = Field(default=30_000, gt=0)
+    steps_per_phase: Whole = Field(default=30_000, gt=0)
     """Base environment steps per phase."""
-    checkpoint_every: int | None = Field(default=None, gt=0)
+    checkpoint_every: Whole | None = Field(default=None, gt=0)
     """Environment steps between checkpoints of the whole training state, each taken at the next
     episode end; default `eval.every`. A stopped run resumes from its last checkpoint."""
     select: Literal["final", "best"] = "final"
     """Which weights of a finished phase's learning layers later phases and `layered eval` use:
     those at the phase's end (`final`) or at its best evaluation (`best`, the paper authors'
     protocol). Both are saved, and both are evaluated again on fresh episodes (eval.fresh_episodes)."""
-    warmup: int = Field(default=1000, ge=0)
+    warmup: Whole = Field(default=1000, ge=0)
     """Decisions of each learning layer taken uniformly at random before updates start (a
     layer's own `warmup` overrides it)."""
     discount: Literal["decision", "step"] = "decision"
     """`decision`: gamma per decision of a layer; `step`: gamma**k for a decision spanning k steps."""
-    seed: int = Field(default=0, ge=0)
-    """Seed of the environment, the networks and the exploration."""
+    seed: Whole = Field(default=0, ge=0, le=2**32 - 1)
+    """Seed of the environment, the networks and the exploration, 0 to 2**32 - 1."""
 
     @model_validator(mode="before")
     @classmethod
@@ -156,23 +156,23 @@ class TrainConfig(Section):
 class EvalConfig(Section):
     """How the stack is evaluated during and after training."""
 
-    every: int = Field(default=5000, gt=0)
+    every: Whole = Field(default=5000, gt=0)
     """Base environment steps between evaluations within a phase."""
-    episodes: int = Field(default=10, gt=0)
+    episodes: Whole = Field(default=10, gt=0)
     """Deterministic episodes per evaluation."""
-    seed_offset: int = 100
+    seed_offset: Whole = 100
     """The evaluation environment is seeded with train.seed plus this offset."""
-    fresh_episodes: int = Field(default=100, ge=0)
+    fresh_episodes: Whole = Field(default=100, ge=0)
     """At the end of each phase its final and its best weights are each evaluated on this many
     fresh episodes: the best of several evaluations overestimates, these do not. 0 skips it."""
-    fresh_seed_offset: int = 1000
+    fresh_seed_offset: Whole = 1000
     """The fresh episodes' environment is seeded with train.seed plus this offset."""
 
 
 class LogConfig(Section):
     """What a run writes besides its CSV logs and results."""
 
-    tensorboard: bool = False
+    tensorboard: Flag = False
     """Also write TensorBoard event files (run directory's `tensorboard/`, one run per phase): every
     row of metrics.csv as scalars. Needs the extra `layered[tensorboard]`."""
 

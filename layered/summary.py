@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import re
+import sys
 import tomllib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -36,11 +37,23 @@ class FinishedRun:
         return self.label.rsplit("/", 1)[-1]
 
 
+class BrokenRun(ValueError):
+    """A run directory whose results cannot be read; the message names it and what is wrong."""
+
+
 def load_finished_run(path: Path) -> FinishedRun:
-    """The run in directory `path`; raises FileNotFoundError naming what is missing."""
+    """The run in directory `path`; raises FileNotFoundError naming what is missing, BrokenRun naming
+    what cannot be read."""
     results_file = path / "results.json"
     if not results_file.exists():
         raise FileNotFoundError(f"{path} is not a finished run (no results.json)")
+    try:
+        return _read_finished_run(path, results_file)
+    except (OSError, ValueError, KeyError, IndexError, TypeError, tomllib.TOMLDecodeError) as e:
+        raise BrokenRun(f"{path}: its results cannot be read ({e.__class__.__name__}: {e})") from None
+
+
+def _read_finished_run(path: Path, results_file: Path) -> FinishedRun:
     results = json.loads(results_file.read_text())
     recipe = tomllib.loads((path / "recipe.toml").read_text())
     final = results["phases"][-1]
@@ -135,5 +148,11 @@ def find_runs(paths: Sequence[Path]) -> list[FinishedRun]:
         dirs = [path] if (path / "results.json").exists() else sorted(p.parent for p in path.rglob("results.json"))
         if not dirs:
             raise FileNotFoundError(f"{path}: no finished runs (no results.json) in it")
-        found += [load_finished_run(d) for d in dirs]
+        for d in dirs:
+            try:
+                found.append(load_finished_run(d))
+            except BrokenRun as e:
+                print(f"layered: warning: {e}; reporting the other runs", file=sys.stderr)
+    if not found:
+        raise FileNotFoundError(f"no readable finished run in {', '.join(map(str, paths))}")
     return found

@@ -50,6 +50,16 @@ CASES = {
     "eval a non-run": (["eval", "{tmp}"], "is not a run directory"),
     "eval zero episodes": (["eval", "{tmp}", "--episodes", "0"], "--episodes: must be positive"),
     "sweep zero seeds": (["sweep", str(TLA_C), "--seeds", "0"], "--seeds: must be positive"),
+    "a period written as a string": (["train", str(TLA_C), 'layers.fast.period="1"'],
+                                     "layers[1].period: input should be a valid integer"),
+    "a whole number written as a float": (["train", str(TLA_C), "train.steps_per_phase=3e4"],
+                                          "train.steps_per_phase: input should be a valid integer"),
+    "a flag written as a string": (["train", str(TLA_C), 'combine.per_dimension="yes"'],
+                                   "combine.per_dimension: input should be a valid boolean"),
+    "a seed beyond 32 bits": (["train", str(TLA_C), "--seed", str(2**64)], "train.seed: input should be less than"),
+    "eval threshold nan": (["eval", "{tmp}", "--threshold", "nan"], "a threshold is a finite number >= 0"),
+    "eval threshold sweep with inf": (["eval", "{tmp}", "--threshold-sweep", "0,inf"], "a threshold is a finite"),
+    "export threshold nan": (["export", "{tmp}", "--threshold", "nan"], "a threshold is a finite number >= 0"),
 }
 
 
@@ -77,3 +87,18 @@ def test_a_budget_below_a_layers_warm_up_is_named_before_training(tmp_path, caps
     assert code == 0
     warning = "layered: warning: phase 0 runs 300 steps, but layer 'slow' acts at random for its first 1000 decisions"
     assert err.index(warning) < err.index("phase 0: slow")
+
+
+def test_report_names_a_broken_run_and_reports_the_others(tmp_path, tiny, capsys):
+    good, broken = tmp_path / "runs" / "good", tmp_path / "runs" / "broken"
+    assert main(["train", str(TLA_C), *tiny, "--steps", "200", "--out", str(good), "--threads", "1"]) == 0
+    broken.mkdir()
+    (broken / "results.json").write_text('{"phases": [')
+    capsys.readouterr()
+    assert main(["report", str(tmp_path / "runs"), "--no-extra-evals", "--out", str(tmp_path / "report")]) == 0
+    err = capsys.readouterr().err
+    assert f"{broken}: its results cannot be read (JSONDecodeError" in err and "Traceback" not in err
+    assert "| Pendulum-v1 |" in (tmp_path / "report" / "report.md").read_text()
+    (good / "results.json").write_text("{}")
+    assert main(["report", str(tmp_path / "runs"), "--no-extra-evals"]) == 2
+    assert "no readable finished run" in capsys.readouterr().err

@@ -3,6 +3,6 @@
 from layered.learners import gate_td3 as _gate_td3  # noqa: F401  (registers "td3-gate")
 from layered.learners import td3 as _td3  # noqa: F401  (registers "td3")
 from layered.learners import temporl as _temporl  # noqa: F401  (registers "temporl")
-from layered.learners.base import LEARNERS, Learner, LearnerConfig, Losses
+from layered.learners.base import LEARNERS, Flag, Learner, LearnerConfig, Losses, Whole
 
-__all__ = ["LEARNERS", "Learner", "LearnerConfig", "Losses"]
+__all__ = ["LEARNERS", "Flag", "Learner", "LearnerConfig", "Losses", "Whole"]

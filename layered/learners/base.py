@@ -3,17 +3,23 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 import torch
 from gymnasium.spaces import Box
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, Strict
 from torch import nn
 
 from layered.buffer import Transition
 from layered.outputs import OutputLayout
 from layered.registry import Registry
+
+
+Whole = Annotated[int, Strict()]
+"""A whole-number setting of a recipe: a string such as "4", a float or a bool is refused, not converted."""
+Flag = Annotated[bool, Strict()]
+"""A true/false setting of a recipe: a string or a number is refused, not converted."""
 
 
 class LearnerConfig(BaseModel):

@@ -15,7 +15,7 @@ from torch import nn
 from torch.func import functional_call
 
 from layered.buffer import Batch, ReplayBuffer, Transition
-from layered.learners.base import LEARNERS, Learner, LearnerConfig, Losses
+from layered.learners.base import LEARNERS, Flag, Learner, LearnerConfig, Losses, Whole
 from layered.outputs import OutputLayout
 
 
@@ -23,11 +23,11 @@ class TD3Config(LearnerConfig):
     """TD3 settings; defaults are those of the TLA paper and of the original TD3."""
 
     kind: Literal["td3"] = "td3"
-    hidden: tuple[Annotated[int, Field(gt=0)], ...] = (400, 300)
+    hidden: tuple[Annotated[Whole, Field(gt=0)], ...] = (400, 300)
     """Hidden layer widths of the actor and of each critic."""
     lr: float = Field(default=3e-4, gt=0)
     """Adam learning rate of actor and critics."""
-    batch_size: int = Field(default=256, gt=0)
+    batch_size: Whole = Field(default=256, gt=0)
     """Transitions per gradient update."""
     tau: float = Field(default=0.005, gt=0, le=1)
     """Polyak rate of the target networks."""
@@ -40,9 +40,9 @@ class TD3Config(LearnerConfig):
     warmup_range: float = Field(default=1.0, gt=0, le=1)
     """Random warm-up actions are uniform over this fraction of the action range, about its centre
     (0.5 on a residual layer of twice the environment's range: uniform over the environment's)."""
-    policy_delay: int = Field(default=2, gt=0)
+    policy_delay: Whole = Field(default=2, gt=0)
     """Critic updates per actor and target update."""
-    critic_warmup: int = Field(default=0, ge=0)
+    critic_warmup: Whole = Field(default=0, ge=0)
     """Critic updates before the actor's first: until then the actor keeps its initial policy (with
     `zero_output`, a residual layer that adds nothing) while the critic learns the values of what
     that policy does, and the targets follow the critic as usual."""
@@ -51,12 +51,12 @@ class TD3Config(LearnerConfig):
     mean ((output - middle) / half-range)², against the critic's value divided by its mean
     magnitude (TD3+BC's form, with the middle as the behaviour), so that a residual layer moves
     away from adding nothing only where its critic shows a clear gain. 0 leaves TD3's loss as is."""
-    buffer_size: int = Field(default=1_000_000, gt=0)
+    buffer_size: Whole = Field(default=1_000_000, gt=0)
     """Replay capacity in transitions."""
     device: Literal["cpu", "cuda", "auto"] = "cpu"
     """Where networks, replay buffer and updates live: `cuda` (a GPU), `cpu`, or `auto` (cuda where
     one is available). Exact resumes and the suite's checks are promised on CPU."""
-    zero_output: bool = False
+    zero_output: Flag = False
     """Start the actor's last layer at zero, so that it outputs the middle of its range until it
     learns: a residual layer then starts by adding nothing to the layers above it."""
     precision: Literal["float32", "bfloat16"] = "float32"
