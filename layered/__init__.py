@@ -1,9 +1,28 @@
-"""layered: reinforcement-learning control with stacks of controllers acting at several timescales."""
+"""layered: reinforcement-learning control with stacks of controllers acting at several timescales.
 
-from layered.agents import LayeredEnv, make_aec_env
-from layered.plugins import load_plugin
-from layered.recipe import Recipe, RecipeError, load_recipe
-from layered.runs import resume, train
+The names below are imported when first used, so that importing the package (as the `layered`
+command does before anything else) loads neither torch nor the environments.
+"""
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from layered.agents import LayeredEnv, make_aec_env
+    from layered.plugins import load_plugin
+    from layered.recipe import Recipe, RecipeError, load_recipe
+    from layered.runs import resume, train
+
+_HOMES = {"LayeredEnv": "layered.agents", "make_aec_env": "layered.agents", "load_plugin": "layered.plugins",
+          "Recipe": "layered.recipe", "RecipeError": "layered.recipe", "load_recipe": "layered.recipe",
+          "resume": "layered.runs", "train": "layered.runs"}
 __all__ = ["LayeredEnv", "Recipe", "RecipeError", "load_plugin", "load_recipe", "make_aec_env", "resume", "train"]
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOMES:
+        raise AttributeError(f"module 'layered' has no attribute {name!r}")
+    return getattr(importlib.import_module(_HOMES[name]), name)

@@ -102,3 +102,20 @@ def test_report_names_a_broken_run_and_reports_the_others(tmp_path, tiny, capsys
     (good / "results.json").write_text("{}")
     assert main(["report", str(tmp_path / "runs"), "--no-extra-evals"]) == 2
     assert "no readable finished run" in capsys.readouterr().err
+
+
+def test_ctrl_c_while_the_command_starts_is_one_line(tmp_path):
+    """SIGINT while the command line loads (torch takes a moment): one line, exit 130, no traceback."""
+    import signal
+    import subprocess
+    import sys
+
+    script = ("import sys; from layered.command import main; print('ready', file=sys.stderr, flush=True); "
+              "sys.argv[0] = 'layered'; sys.exit(main())")
+    proc = subprocess.Popen([sys.executable, "-c", script, "train", str(TLA_C), "--out", str(tmp_path / "run")],
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    assert proc.stderr.readline().strip() == "ready"
+    proc.send_signal(signal.SIGINT)
+    err = proc.communicate(timeout=120)[1]
+    assert proc.returncode == 130 and "Traceback" not in err, err
+    assert err.strip().splitlines()[-1].startswith("layered: stopped")
