@@ -25,7 +25,7 @@ class RecipeError(ValueError):
 class Section(BaseModel):
     """Base of every recipe table: frozen, unknown keys are errors, attribute docstrings documented."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True, allow_inf_nan=False)
 
 
 class EnvConfig(Section):

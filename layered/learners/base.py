@@ -25,7 +25,7 @@ Flag = Annotated[bool, Strict()]
 class LearnerConfig(BaseModel):
     """Base of every learner's settings: frozen, and unknown keys are errors."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True, allow_inf_nan=False)
 
     kind: str
     """Registered name of the learner."""
