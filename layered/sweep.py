@@ -8,6 +8,7 @@ machine runs it. Ctrl-C stops every run at its next episode end with a checkpoin
 from __future__ import annotations
 
 import contextlib
+import json
 import multiprocessing
 import os
 import sys
@@ -51,27 +52,50 @@ def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequen
          max_steps: int | None = None, plugins: Sequence[str] = ()) -> list[Job]:
     """The jobs of a sweep; every recipe is validated first, so a bad one stops it before any run.
 
-    Run directories are `out/<recipe folder>/<recipe name>/seed<k>`. Jobs are ordered seed by
-    seed, so a sweep cut short still has every recipe for its first seeds.
+    Run directories are `out/<recipe folder>/<recipe name>/seed<k>`, with as many more of each
+    recipe's parent folders as it takes to tell recipes of the same folder and file name apart.
+    Jobs are ordered seed by seed, so a sweep cut short still has every recipe for its first seeds.
     """
+    paths = list(dict.fromkeys(Path(source).resolve() for source in recipes))  # a recipe named twice runs once
+    labels = recipe_labels(paths)
     jobs = []
     for seed in range(seeds):
-        for source in recipes:
-            path = Path(source)
-            label = f"{path.parent.name}/{path.stem}"
+        for path in paths:
             recipe = load_recipe(path, [*overrides, f"train.seed={seed}"])
-            run_dir = out / path.parent.name / path.stem / f"seed{seed}"
-            job = Job(resolved(recipe), run_dir, label, max_steps, tuple(plugins))
-            _check_same_recipe(job)
+            job = Job(resolved(recipe), out / labels[path] / f"seed{seed}", labels[path], max_steps, tuple(plugins))
+            _check_same_run(job)
             jobs.append(job)
     return jobs
 
 
-def _check_same_recipe(job: Job) -> None:
-    """A run directory from an earlier sweep must hold the same recipe, or resuming would mix two."""
+def recipe_labels(paths: Sequence[Path]) -> dict[Path, str]:
+    """Each recipe's label and run folder: `<folder>/<name>`, lengthened by parent folders where two
+    recipes would otherwise share it."""
+    depth = {path: 2 for path in paths}
+    while True:
+        labels = {path: "/".join([*path.parent.parts[-(depth[path] - 1):], path.stem]) for path in paths}
+        clashing = [p for p in paths if list(labels.values()).count(labels[p]) > 1 and depth[p] < len(p.parts)]
+        if not clashing:
+            return labels
+        for path in clashing:
+            depth[path] += 1
+
+
+def _check_same_run(job: Job) -> None:
+    """A run directory from an earlier sweep must hold the same recipe and `--steps`, or resuming (or
+    skipping it as finished) would mix two experiments."""
     existing = job.out / "recipe.toml"
     if existing.exists() and tomllib.loads(existing.read_text()) != tomllib.loads(tomli_w.dumps(job.recipe)):
         raise RecipeError(str(existing), [("", "this run directory holds a different recipe; use another --out")])
+    info = job.out / "run.json"
+    if info.exists() and json.loads(info.read_text()).get("max_steps") != job.max_steps:
+        made = json.loads(info.read_text()).get("max_steps")
+        raise RecipeError(str(info), [("", f"this run was made with {_steps(made)}, not {_steps(job.max_steps)}; "
+                                       "use another --out, or the same --steps")])
+
+
+def _steps(max_steps: int | None) -> str:
+    return "no --steps" if max_steps is None else f"--steps {max_steps}"
 
 
 def run_job(job: Job) -> Outcome:

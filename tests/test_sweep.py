@@ -41,6 +41,21 @@ def test_sweep_refuses_bad_recipes_and_foreign_run_directories(tmp_path):
     assert sweep(PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 100, "--out", out).returncode == 0
     proc = sweep(PENDULUM / "td3.toml", *TINY, "learner.lr=1e-3", "--seeds", 1, "--out", out)
     assert proc.returncode == 2 and "holds a different recipe" in proc.stderr
+    proc = sweep(PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 200, "--out", out)  # not silently reused
+    assert proc.returncode == 2 and "this run was made with --steps 100, not --steps 200" in proc.stderr
+
+
+def test_recipes_of_the_same_folder_and_name_get_run_directories_of_their_own(tmp_path):
+    from layered.sweep import plan
+
+    for place in ("a", "b"):
+        (tmp_path / place / "pendulum").mkdir(parents=True)
+        (tmp_path / place / "pendulum" / "td3.toml").write_text((PENDULUM / "td3.toml").read_text())
+    recipes = [tmp_path / place / "pendulum" / "td3.toml" for place in ("a", "b")] + [PENDULUM / "tla-c.toml"]
+    jobs = plan([*recipes, recipes[0]], 1, tmp_path / "out")  # the first one named twice: run once
+    assert [job.out.relative_to(tmp_path / "out").as_posix() for job in jobs] == [
+        "a/pendulum/td3/seed0", "b/pendulum/td3/seed0", "pendulum/tla-c/seed0"]
+    assert [job.label for job in jobs] == ["a/pendulum/td3", "b/pendulum/td3", "pendulum/tla-c"]
 
 
 def test_ray_backend_runs_the_same_jobs_and_gathers_the_same_run_directories(tmp_path):
