@@ -142,7 +142,9 @@ def passed(moment: float) -> bool:
 
 
 def test_killed_with_sigkill_at_random_moments_and_resumed_ends_byte_identical(tmp_path):
-    """The promise: SIGKILL anywhere, once mid-write of a checkpoint, resume each time, same files."""
+    """The promise: SIGKILL at random moments, and once as soon as a checkpoint write is under way (the
+    write may finish first: whether the kill landed mid-write is printed, not asserted); resume each
+    time; the same files as a run never killed."""
     whole = tmp_path / "whole"
     assert layered("train", *CLI_RUN, "--out", whole).wait() == 0
     out, rng = tmp_path / "killed", random.Random(7)
@@ -188,10 +190,8 @@ def test_sigint_and_sigterm_stop_cleanly_with_a_checkpoint_and_one_line(tmp_path
 def test_train_into_a_stopped_run_says_how_to_resume_and_force_starts_over(tmp_path):
     out = tmp_path / "run"
     proc = layered("train", *CLI_RUN, "--out", out)
-    while not (out / "checkpoints" / "run.pt").exists():
-        time.sleep(0.05)
-    proc.kill()
-    proc.wait()
+    assert kill_when(proc, (out / "checkpoints" / "run.pt").exists, timeout=120.0), "it finished before a checkpoint"
+    assert (out / "checkpoints" / "run.pt").exists()
     before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
     proc = layered("train", *CLI_RUN, "--out", out)
     _, err = proc.communicate()
