@@ -36,6 +36,11 @@ class RunInfo:
     plugins: tuple[str, ...] = ()
 
 
+def steps_option(max_steps: int | None) -> str:
+    """How a run's step cap was asked for on the command line: `--steps 2000`, or `no --steps`."""
+    return "no --steps" if max_steps is None else f"--steps {max_steps}"
+
+
 def has_progress(run_dir: Path) -> bool:
     """Whether the directory holds a run with something to lose: a checkpoint or results."""
     run_state = run_dir / "checkpoints" / "run.pt"

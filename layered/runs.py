@@ -26,6 +26,7 @@ from layered.rundir import (
     has_progress,
     prepare_run_dir,
     read_run_info,
+    steps_option,
     writing,
 )
 from layered.runstate import LoopState, load_state
@@ -115,7 +116,7 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
     run_dir = Path(run_dir)
     info = read_run_info(run_dir)
     if max_steps is not None and max_steps != info.max_steps:
-        started = "no --steps" if info.max_steps is None else f"--steps {info.max_steps}"
-        raise RunDirError(f"{run_dir}: the run was started with {started}, not --steps {max_steps}")
+        raise RunDirError(f"{run_dir}: the run was started with {steps_option(info.max_steps)}, not "
+                          f"{steps_option(max_steps)}")
     recipe = load_recipe(run_dir / "recipe.toml")
     return train(recipe, run_dir, info.max_steps, progress, info.label, resume=True, plugins=info.plugins)

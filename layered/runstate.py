@@ -18,6 +18,7 @@ import torch
 from layered.checkpoint import CheckpointError, load_latest, save_checkpoint
 from layered.learners import Learner, Losses
 from layered.metrics import Evaluation
+from layered.rundir import steps_option
 
 
 UpdateStats = dict[str, float | None]
@@ -136,11 +137,8 @@ def load_state(path: Path, learners: dict[str, Learner], resolved_recipe: dict[s
         raise CheckpointError(f"{path.parent.parent}: the recipe differs from the one the run was started with "
                               f"({'; '.join(changes[:3])}{'; ...' if len(changes) > 3 else ''})")
     if saved["max_steps"] != max_steps:
-        def steps(n: int | None) -> str:
-            return "no --steps" if n is None else f"--steps {n}"
-
-        raise CheckpointError(f"{path.parent.parent}: the run was started with {steps(saved['max_steps'])}, "
-                              f"not {steps(max_steps)}")
+        raise CheckpointError(f"{path.parent.parent}: the run was started with {steps_option(saved['max_steps'])}, "
+                              f"not {steps_option(max_steps)}")
     for name, learner in learners.items():
         learner.load_resume_state(saved["learners"][name])
     torch.set_rng_state(saved["torch_rng"])

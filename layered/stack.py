@@ -125,7 +125,7 @@ class Stack:
             low, high = output_bounds(recipe, i, action_space, layout)
             self.layers.append(Layer(
                 rules=LayerRules(
-                    name=cfg.name, period=int(cfg.period or 1), low=low, high=high, combiner=combiner,
+                    name=cfg.name, period=recipe.period(i), low=low, high=high, combiner=combiner,
                     sees=tuple(names.index(s) for s in cfg.sees if s != "obs"), delay=cfg.delay,
                     max_repeat=cfg.max_repeat, action_penalty=recipe.action_penalty(i),
                     defer_reward_scale=cfg.defer_reward_scale, defer_penalty=cfg.defer_penalty,

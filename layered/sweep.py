@@ -8,7 +8,6 @@ machine runs it. Ctrl-C stops every run at its next episode end with a checkpoin
 from __future__ import annotations
 
 import contextlib
-import json
 import multiprocessing
 import os
 import sys
@@ -26,6 +25,7 @@ from tqdm import tqdm
 
 from layered.plugins import load_plugins
 from layered.recipe import RecipeError, load_recipe, resolved
+from layered.rundir import read_run_info, steps_option
 
 
 @dataclass(frozen=True)
@@ -87,15 +87,10 @@ def _check_same_run(job: Job) -> None:
     existing = job.out / "recipe.toml"
     if existing.exists() and tomllib.loads(existing.read_text()) != tomllib.loads(tomli_w.dumps(job.recipe)):
         raise RecipeError(str(existing), [("", "this run directory holds a different recipe; use another --out")])
-    info = job.out / "run.json"
-    if info.exists() and json.loads(info.read_text()).get("max_steps") != job.max_steps:
-        made = json.loads(info.read_text()).get("max_steps")
-        raise RecipeError(str(info), [("", f"this run was made with {_steps(made)}, not {_steps(job.max_steps)}; "
-                                       "use another --out, or the same --steps")])
-
-
-def _steps(max_steps: int | None) -> str:
-    return "no --steps" if max_steps is None else f"--steps {max_steps}"
+    if (job.out / "run.json").exists() and (made := read_run_info(job.out).max_steps) != job.max_steps:
+        raise RecipeError(str(job.out / "run.json"), [("", f"this run was made with {steps_option(made)}, not "
+                                                       f"{steps_option(job.max_steps)}; use another --out, or the "
+                                                       "same --steps")])
 
 
 def run_job(job: Job) -> Outcome:
