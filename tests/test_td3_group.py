@@ -76,10 +76,68 @@ def test_a_seeds_state_is_an_ordinary_td3_checkpoint():
     group = TD3Group(learners([4, 5]))
     fill(group, [4, 5])
     losses = [group.update() for _ in range(4)]
-    assert [set(x) for x in losses] == [{"critic"}, {"critic", "actor"}] * 2 and losses[0]["critic"].shape == (2,)
+    assert [set(x) for x in losses] == [{"critic"}, {"critic", "actor"}] * 2 and losses[0]["critic"][0].shape == (2,)
     obs = np.full((2, 3), 0.3, np.float32)
     for k, seed in enumerate([4, 5]):
         single = learners([seed])[0]
         single.load_state_dict(group.seed_state_dict(k))  # strict: every key and shape of a TD3 state
         assert single.act(obs[k], explore=False) == pytest.approx(group.act(obs, explore=False)[k], abs=1e-6)
         assert single.updates == 4
+
+
+def flat_state(group, k):
+    """Every tensor of seed k's state (networks, targets, optimiser moments and counts), flattened."""
+    state = group.seed_state_dict(k)
+    out = {}
+    for part in ("actor", "critic", "actor_target", "critic_target"):
+        out |= {f"{part}.{key}": value for key, value in state[part].items()}
+    for opt in ("actor_opt", "critic_opt"):
+        for index, moments in state[opt]["state"].items():
+            out |= {f"{opt}.{index}.{key}": value for key, value in moments.items()}
+    return out
+
+
+def test_a_seed_left_out_of_an_update_keeps_everything_and_the_others_do_not_notice():
+    everyone, some = TD3Group(learners([0, 1, 2])), TD3Group(learners([0, 1, 2]))
+    fill(everyone, [0, 1, 2])
+    fill(some, [0, 1, 2])
+    before = flat_state(some, 1)
+    for _ in range(4):  # critic and actor steps, targets followed
+        everyone.update()
+        some.update(np.array([True, False, True]))
+    assert list(some.updates) == [4, 0, 4]
+    left_out = flat_state(some, 1)
+    assert before.keys() == left_out.keys() and all(torch.equal(before[key], left_out[key]) for key in before)
+    for k in (0, 2):
+        mine, theirs = flat_state(some, k), flat_state(everyone, k)
+        assert all(torch.equal(mine[key], theirs[key]) for key in mine), f"seed {k}"
+
+
+def test_the_actor_waits_for_each_seeds_own_count_of_critic_updates():
+    group = TD3Group(learners([0, 1], CONFIG.model_copy(update={"critic_warmup": 2})))
+    fill(group, [0, 1])
+    assert "actor" not in group.update(np.array([True, False]))
+    assert "actor" not in group.update(np.array([True, True]))  # seed 0's 2nd update: still within its warm-up
+    losses = group.update(np.array([True, True]))
+    assert "actor" not in losses
+    losses = group.update(np.array([True, True]))  # seed 0's 4th (acts), seed 1's 3rd (odd: critic only)
+    assert list(losses["actor"][1]) == [True, False] and list(group.updates) == [4, 3]
+
+
+def test_a_seed_state_loads_into_any_seed_of_a_group():
+    trained, fresh = TD3Group(learners([0, 1])), TD3Group(learners([7, 8]))
+    fill(trained, [0, 1])
+    for _ in range(3):
+        trained.update()
+    fresh.load_seed_state_dict(1, trained.seed_state_dict(0))
+    mine, theirs = flat_state(fresh, 1), flat_state(trained, 0)
+    assert mine.keys() == theirs.keys() and all(torch.equal(mine[key], theirs[key]) for key in mine)
+    assert fresh.updates[1] == 3 and fresh.updates[0] == 0
+
+
+def test_warm_up_actions_cover_each_seeds_range():
+    group = TD3Group(learners([0, 1], CONFIG.model_copy(update={"warmup_range": 0.5})))
+    actions = np.concatenate([group.random_action() for _ in range(200)])
+    assert actions.shape == (400, 2)
+    assert actions[:, 0].min() >= -1.0 and actions[:, 0].max() <= 1.0 and actions[:, 0].max() > 0.9
+    assert actions[:, 1].min() >= 0.25 and actions[:, 1].max() <= 0.75

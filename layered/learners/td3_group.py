@@ -14,6 +14,7 @@ single `TD3` learner's `state_dict`, so that each seed can be written, evaluated
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from typing import Any
 
@@ -21,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from layered.learners.td3 import TD3, TD3Config, adam
+from layered.learners.td3 import TD3, TD3Config
 
 
 class StackedMLP(nn.Module):
@@ -58,16 +59,96 @@ class StackedMLP(nn.Module):
 
     def seed_state(self, k: int, prefix: str) -> dict[str, torch.Tensor]:
         """Seed k's weights under the names an `nn.Sequential` of linear layers and ReLUs gives them."""
-        return {**{f"{prefix}{2 * j}.weight": w[k].T.contiguous() for j, w in enumerate(self.weights)},
-                **{f"{prefix}{2 * j}.bias": b[k, 0].clone() for j, b in enumerate(self.biases)}}
+        return {f"{prefix}{j - j % 2}.{'weight' if j % 2 == 0 else 'bias'}": _unstack(t, k, j)
+                for j, t in enumerate(self.stacked)}
+
+    @torch.no_grad()
+    def load_seed_state(self, k: int, state: dict[str, torch.Tensor], prefix: str) -> None:
+        """Set seed k's weights from what `seed_state` names them."""
+        for j, t in enumerate(self.stacked):
+            t[k] = _restack(state[f"{prefix}{j - j % 2}.{'weight' if j % 2 == 0 else 'bias'}"], j)
+
+
+
+class StackedAdam:
+    """Adam over stacked `[K, ...]` parameters with a step count per seed: a seed left out of an update
+    keeps its parameters, moments and count exactly. torch.optim.Adam's arithmetic, written with
+    tensor masks rather than branches, so that the same operations serve any set of seeds."""
+
+    def __init__(self, params: Sequence[torch.Tensor], lr: float, k: int, template: dict[str, Any]) -> None:
+        """`template`: a single network's Adam `state_dict`, whose `param_groups` a seed's state takes."""
+        self.params = list(params)
+        self.lr = lr
+        self.beta1, self.beta2 = template["param_groups"][0]["betas"]
+        self.eps = template["param_groups"][0]["eps"]
+        self.param_groups = template["param_groups"]
+        self.exp_avg = [torch.zeros_like(p) for p in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
+        self.steps = torch.zeros(k, device=self.params[0].device)
+
+    def zero_grad(self) -> None:
+        for p in self.params:
+            p.grad = None
+
+    @torch.no_grad()
+    def step(self, rows: torch.Tensor) -> None:
+        """One Adam step of the seeds in `rows` (a [K] float mask of 0s and 1s) from the parameters' gradients."""
+        self.steps += rows
+        count = self.steps.clamp(min=1)  # (a seed not yet stepped is left out: its correction is never used)
+        step_size = (self.lr / (1 - self.beta1 ** count)).neg_() * rows
+        root = (1 - self.beta2 ** count).sqrt()
+        for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True):
+            shape = (-1,) + (1,) * (p.dim() - 1)
+            mask = rows.view(shape)
+            grad = torch.where(mask > 0, p.grad, 0.0)  # a left-out seed's gradient may be of garbage rows
+            m.lerp_(grad, (1 - self.beta1) * mask)
+            v.mul_(1 - (1 - self.beta2) * mask).addcmul_(grad, grad, value=1 - self.beta2)
+            p.addcdiv_(m * step_size.view(shape), (v.sqrt() / root.view(shape)).add_(self.eps))
+
+    def seed_state(self, k: int) -> dict[str, Any]:
+        """Seed k's part, in the layout of a single network's Adam (weights `[out, in]`, biases `[out]`)."""
+        state = {}
+        for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True)):
+            if float(self.steps[k]):
+                state[index] = {"step": self.steps[k].detach().cpu().clone(), "exp_avg": _unstack(m, k, index),
+                                "exp_avg_sq": _unstack(v, k, index)}
+        return {"state": state, "param_groups": copy.deepcopy(self.param_groups)}
+
+    def load_seed_state(self, k: int, state: dict[str, Any]) -> None:
+        """Set seed k's part from a single network's Adam `state_dict`."""
+        self.steps[k] = 0.0
+        for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True)):
+            moments = state["state"].get(index)
+            m[k], v[k] = (0.0, 0.0) if moments is None else (_restack(moments["exp_avg"], index),
+                                                              _restack(moments["exp_avg_sq"], index))
+            if moments is not None:
+                self.steps[k] = float(moments["step"])
+
+
+def _unstack(t: torch.Tensor, k: int, index: int) -> torch.Tensor:
+    """Seed k's slice of a stacked weight (even index, `[K, in, out]`) or bias (odd, `[K, 1, out]`),
+    as an `nn.Linear` holds it."""
+    return t[k].T.contiguous() if index % 2 == 0 else t[k, 0].clone()
+
+
+def _restack(t: torch.Tensor, index: int) -> torch.Tensor:
+    """An `nn.Linear`'s weight or bias in the layout of one seed's slice of the stacked one."""
+    return t.T if index % 2 == 0 else t[None]
+
+
+GroupLosses = dict[str, tuple[torch.Tensor, np.ndarray]]
+"""What one update of a group returns: per loss name, its value for every seed ([K], on the device) and the
+mask of the seeds whose update computed it (the others' values are meaningless)."""
 
 
 class TD3Group:
     """K TD3 learners of one configuration, one per seed, updated together."""
 
+    loss_names = TD3.loss_names
+
     def __init__(self, learners: Sequence[TD3], seed: int = 0) -> None:
         """Stack `learners` (new ones, of the same spaces and settings, one per seed); `seed` seeds the
-        group's own generators (minibatch indices, smoothing and exploration noise)."""
+        group's own generators (minibatch indices, smoothing, exploration and warm-up draws)."""
         first = learners[0]
         self.config: TD3Config = first.config
         if self.config.precision != "float32" or self.config.compile != "off" or self.config.actor_anchor:
@@ -83,11 +164,13 @@ class TD3Group:
         self.q2_target = StackedMLP([learner.critic_target.q2 for learner in learners]).to(self.device)
         for target in (self.actor_target, self.q1_target, self.q2_target):
             target.requires_grad_(False)
-        self.actor_opt = adam(self.actor.parameters(), self.config.lr)
-        self.critic_opt = adam([*self.q1.parameters(), *self.q2.parameters()], self.config.lr)
-        self._targets: list[torch.Tensor] = [*self.actor_target.parameters(), *self.q1_target.parameters(),
-                                             *self.q2_target.parameters()]
-        self._sources: list[torch.Tensor] = [*self.actor.parameters(), *self.q1.parameters(), *self.q2.parameters()]
+        self.actor_opt = StackedAdam(list(self.actor.parameters()), self.config.lr, self.k,
+                                     first.actor_opt.state_dict())
+        self.critic_opt = StackedAdam([*self.q1.parameters(), *self.q2.parameters()], self.config.lr, self.k,
+                                      first.critic_opt.state_dict())
+        self._critic_pairs = ([*self.q1_target.parameters(), *self.q2_target.parameters()],
+                              [*self.q1.parameters(), *self.q2.parameters()])
+        self._actor_pair = (list(self.actor_target.parameters()), list(self.actor.parameters()))
         self.centre, self.scale = first.actor.centre.to(self.device), first.actor.scale.to(self.device)
         self._low, self._high = first._low, first._high
         self.obs_dim, self.act_dim = first.obs_space.shape[0], first.action_space.shape[0]
@@ -96,9 +179,10 @@ class TD3Group:
         self._rows = torch.empty((self.k, self.config.buffer_size, self._cuts[-1]), device=self.device)
         self.sizes = torch.zeros(self.k, dtype=torch.long, device=self.device)
         self._next = torch.zeros(self.k, dtype=torch.long, device=self.device)
+        self._stored = np.zeros(self.k, np.int64)  # transitions stored per seed, known on the host
         self.torch_rng = torch.Generator(self.device).manual_seed(seed)
         self.rng = np.random.default_rng(seed)
-        self.updates = 0
+        self.updates = np.zeros(self.k, np.int64)  # per seed
 
     def _actions(self, obs: torch.Tensor, net: StackedMLP) -> torch.Tensor:
         return self.centre + self.scale * torch.tanh(net(obs))
@@ -115,6 +199,12 @@ class TD3Group:
             action = np.clip(action + noise, low, high)
         return action.astype(np.float32)
 
+    def random_action(self) -> np.ndarray:
+        """[K, action] warm-up actions: uniform over `warmup_range` of the range, about its centre."""
+        low, high = self.action_space.low, self.action_space.high
+        centre, half = (high + low) / 2, (high - low) / 2 * self.config.warmup_range
+        return self.rng.uniform(centre - half, centre + half, (self.k, len(low))).astype(np.float32)
+
     def observe(self, obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
                 terminated: np.ndarray, discount: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Store one transition per seed ([K, ...] arrays), or only in the seeds of the `rows` mask."""
@@ -127,30 +217,41 @@ class TD3Group:
         self._rows[seeds, at] = torch.as_tensor(data[k], device=self.device)
         self._next[seeds] = (at + 1) % self.config.buffer_size
         self.sizes[seeds] = torch.clamp(self.sizes[seeds] + 1, max=self.config.buffer_size)
+        self._stored[k] += 1
 
     def sample(self) -> tuple[torch.Tensor, ...]:
         """A minibatch per seed, drawn uniformly from its own buffer: obs, action, reward, next obs,
-        not done, discount, each [K, batch, width]."""
+        not done, discount, each [K, batch, width] (garbage for a seed with an empty buffer)."""
         u = torch.rand((self.k, self.config.batch_size), generator=self.torch_rng, device=self.device)
         idx = (u * self.sizes[:, None]).long()
         rows = torch.gather(self._rows, 1, idx[:, :, None].expand(-1, -1, self._cuts[-1]))
         return tuple(rows[:, :, a:b] for a, b in zip(self._cuts, self._cuts[1:], strict=False))
 
-    def update(self) -> dict[str, torch.Tensor] | None:
-        """One TD3 update of every seed; the losses per seed ([K] tensors), as a single learner names them."""
-        if int(self.sizes.min()) == 0:
+    def update(self, rows: np.ndarray | None = None) -> GroupLosses | None:
+        """One TD3 update of the seeds in the `rows` mask (default all) that have stored a transition;
+        the others are left exactly as they were. None when no seed updates."""
+        rows = (self._stored > 0) if rows is None else rows & (self._stored > 0)
+        if not rows.any():
             return None
         batch = self.sample()
         noise = torch.randn(batch[1].shape, generator=self.torch_rng, device=self.device)
-        critic = self.critic_step(batch, noise)
-        self.updates += 1
-        if self.updates % self.config.policy_delay:
-            return {"critic": critic}
-        return {"critic": critic, "actor": self.actor_step(batch[0])}
+        losses = {"critic": (self.critic_step(batch, noise, self._mask(rows)), rows)}
+        self.updates[rows] += 1
+        delayed = rows & (self.updates % self.config.policy_delay == 0)
+        acting = delayed & (self.updates > self.config.critic_warmup)
+        if (waiting := delayed & ~acting).any():  # the critic's targets alone: the actor waits
+            _follow(*self._critic_pairs, self._mask(waiting) * self.config.tau)
+        if acting.any():
+            losses["actor"] = (self.actor_step(batch[0], self._mask(acting)), acting)
+        return losses
 
-    def critic_step(self, batch: tuple[torch.Tensor, ...], noise: torch.Tensor) -> torch.Tensor:
-        """One critic step of every seed on its minibatch, with standard-normal smoothing `noise`; the
-        losses per seed."""
+    def _mask(self, rows: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(rows, dtype=torch.float32, device=self.device)
+
+    def critic_step(self, batch: tuple[torch.Tensor, ...], noise: torch.Tensor, rows: torch.Tensor | None = None
+                    ) -> torch.Tensor:
+        """One critic step of the seeds in `rows` (a [K] float mask; default all) on their minibatches,
+        with standard-normal smoothing `noise`; the losses per seed."""
         obs, action, reward, next_obs, not_done, discount = batch
         cfg = self.config
         with torch.no_grad():
@@ -160,52 +261,52 @@ class TD3Group:
             target = reward + not_done * discount * torch.min(self.q1_target(pair), self.q2_target(pair))
         pair = torch.cat([obs, action], dim=-1)
         losses = (self.q1(pair) - target).square().mean(dim=(1, 2)) + (self.q2(pair) - target).square().mean(dim=(1, 2))
-        self.critic_opt.zero_grad(set_to_none=True)
+        self.critic_opt.zero_grad()
         losses.sum().backward()
-        self.critic_opt.step()
+        self.critic_opt.step(self._mask(np.ones(self.k, bool)) if rows is None else rows)
         return losses.detach()
 
-    def actor_step(self, obs: torch.Tensor) -> torch.Tensor:
-        """One actor step of every seed through its Q1, then the soft update of every target; the losses."""
+    def actor_step(self, obs: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """One actor step of the seeds in `rows` (default all) through their Q1, then the soft update of
+        their targets; the losses per seed."""
+        rows = self._mask(np.ones(self.k, bool)) if rows is None else rows
         q1 = self.q1(torch.cat([obs, self._actions(obs, self.actor)], dim=-1), frozen=True)
         losses = -q1.mean(dim=(1, 2))
-        self.actor_opt.zero_grad(set_to_none=True)
+        self.actor_opt.zero_grad()
         losses.sum().backward()
-        self.actor_opt.step()
-        with torch.no_grad():
-            torch._foreach_lerp_(self._targets, self._sources, self.config.tau)
+        self.actor_opt.step(rows)
+        weight = rows * self.config.tau
+        _follow(*self._actor_pair, weight)
+        _follow(*self._critic_pairs, weight)
         return losses.detach()
 
     def seed_state_dict(self, k: int) -> dict[str, Any]:
         """Seed k's networks as a single `TD3` learner's `state_dict` holds them (the optimisers' moments
-        per seed too), so that the seed's checkpoint is an ordinary one."""
-        def critic(q1: StackedMLP, q2: StackedMLP) -> dict[str, torch.Tensor]:
-            return {**q1.seed_state(k, "q1."), **q2.seed_state(k, "q2.")}
-
+        and counts per seed too), so that the seed's checkpoint is an ordinary one."""
+        actor = {"centre": self.centre.clone(), "scale": self.scale.clone()}
         return {
-            "actor": {**self.actor.seed_state(k, "net."), "centre": self.centre.clone(), "scale": self.scale.clone()},
-            "critic": critic(self.q1, self.q2),
-            "actor_target": {**self.actor_target.seed_state(k, "net."), "centre": self.centre.clone(),
-                             "scale": self.scale.clone()},
-            "critic_target": critic(self.q1_target, self.q2_target),
-            "actor_opt": _seed_adam(self.actor_opt, k), "critic_opt": _seed_adam(self.critic_opt, k),
-            "updates": self.updates, "torch_rng": self.torch_rng.get_state(),
+            "actor": {**self.actor.seed_state(k, "net."), **actor},
+            "critic": {**self.q1.seed_state(k, "q1."), **self.q2.seed_state(k, "q2.")},
+            "actor_target": {**self.actor_target.seed_state(k, "net."), **actor},
+            "critic_target": {**self.q1_target.seed_state(k, "q1."), **self.q2_target.seed_state(k, "q2.")},
+            "actor_opt": self.actor_opt.seed_state(k), "critic_opt": self.critic_opt.seed_state(k),
+            "updates": int(self.updates[k]), "torch_rng": self.torch_rng.get_state(),
         }
 
+    def load_seed_state_dict(self, k: int, state: dict[str, Any]) -> None:
+        """Set seed k from a single `TD3` learner's `state_dict` (the group's generators stay as they are)."""
+        self.actor.load_seed_state(k, state["actor"], "net.")
+        self.actor_target.load_seed_state(k, state["actor_target"], "net.")
+        for net, target, name in ((self.q1, self.q1_target, "q1."), (self.q2, self.q2_target, "q2.")):
+            net.load_seed_state(k, state["critic"], name)
+            target.load_seed_state(k, state["critic_target"], name)
+        self.actor_opt.load_seed_state(k, state["actor_opt"])
+        self.critic_opt.load_seed_state(k, state["critic_opt"])
+        self.updates[k] = int(state["updates"])
 
-def _seed_adam(optimizer: torch.optim.Adam, k: int) -> dict[str, Any]:
-    """Seed k's part of a stacked Adam's state, in the layout of a single network's Adam (weights as
-    `[out, in]`, biases as `[out]`)."""
-    state = optimizer.state_dict()
-    per_seed = {}
-    for index in range(sum(len(group["params"]) for group in optimizer.param_groups)):
-        moments = state["state"].get(index)
-        if moments is None:
-            continue
 
-        def part(t: torch.Tensor, weight: bool = index % 2 == 0) -> torch.Tensor:  # weights and biases alternate
-            return t[k].T.contiguous() if weight else t[k, 0].clone()
-
-        per_seed[index] = {"step": moments["step"].clone(), "exp_avg": part(moments["exp_avg"]),
-                           "exp_avg_sq": part(moments["exp_avg_sq"])}
-    return {"state": per_seed, "param_groups": state["param_groups"]}
+@torch.no_grad()
+def _follow(targets: list[torch.Tensor], sources: list[torch.Tensor], weight: torch.Tensor) -> None:
+    """The soft update of each target towards its source, by `weight` per seed ([K]; 0 leaves a seed's as it is)."""
+    for target, source in zip(targets, sources, strict=True):
+        target.lerp_(source, weight.view((-1,) + (1,) * (target.dim() - 1)))
