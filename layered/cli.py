@@ -66,18 +66,37 @@ def _positive(text: str) -> int:
     return value
 
 
+def _seeds(text: str) -> list[int]:
+    """`--seeds`: a count N (seeds 0..N-1), a range A-B (inclusive) or a list A,B,C."""
+    try:
+        if "," in text:
+            seeds = [int(part) for part in text.split(",")]
+        elif "-" in text.strip("-"):
+            first, last = (int(part) for part in text.split("-", 1))
+            seeds = list(range(first, last + 1))
+        else:
+            seeds = list(range(_positive(text)))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N, A-B or A,B,C, got {text!r}") from None
+    if not seeds or min(seeds) < 0 or max(seeds) > 2**32 - 1 or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"expected distinct seeds from 0 to 2**32-1, got {text!r}")
+    return seeds
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="layered", description="Temporally layered control stacks.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     tr = sub.add_parser(
         "train", help="train a recipe and write a run directory",
         usage="layered train RECIPE [key=value ...] [--out DIR] [--seed S] [--steps N] [--threads T] [--force] "
-        "[--tensorboard] [--device {cpu,cuda,auto}] [--plugin FILE.py|MODULE]",
+        "[--seeds N|A-B|A,B,C] [--tensorboard] [--device {cpu,cuda,auto}] [--plugin FILE.py|MODULE]",
         epilog="key=value pairs override recipe values, e.g. train.warmup=500 layers.fast.period=2",
     )
     tr.add_argument("recipe", help="recipe TOML file")
     tr.add_argument("--out", type=Path, help="run directory (default runs/<recipe>-s<seed>-<time>)")
     tr.add_argument("--seed", type=int, help="same as train.seed=S")
+    tr.add_argument("--seeds", type=_seeds, help="train several seeds as one group in this process: N (0..N-1), "
+                    "A-B or A,B,C; each seed gets its own run directory OUT/seed<k>")
     tr.add_argument("--steps", type=_positive, help="cap every training phase at N environment steps")
     tr.add_argument("--threads", type=_positive, help="torch threads (use 1 per process when running several)")
     tr.add_argument("--force", action="store_true", help="start over in an --out that holds a stopped or finished run")
@@ -161,6 +180,8 @@ def _train(args: argparse.Namespace) -> int:
     overrides += ["log.tensorboard=true"] if args.tensorboard else []
     overrides += [f"learner.device={args.device}"] if args.device else []
     plugins = load_plugins(args.plugin)
+    if args.seeds is not None:
+        return _train_group(args, overrides, plugins)
     recipe = load_recipe(args.recipe, overrides)
     out = args.out or Path("runs") / f"{Path(args.recipe).stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
     args.out = out
@@ -171,6 +192,30 @@ def _train(args: argparse.Namespace) -> int:
     source = Path(args.recipe)
     train(recipe, out, max_steps=args.steps, label=f"{source.parent.name}/{source.stem}", plugins=plugins)
     return _finished(out)
+
+
+def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[str]) -> int:
+    from layered.group import check_group, group_recipes, train_group
+    from layered.rundir import check_new_run_dir, clear_run_dir
+
+    if args.seed is not None:
+        return _fail("give --seed or --seeds, not both")
+    recipes = group_recipes(args.recipe, args.seeds, overrides)
+    check_group(recipes[0])
+    out = args.out or Path("runs") / f"{Path(args.recipe).stem}-group-{time.strftime('%Y%m%d-%H%M%S')}"
+    args.out = None  # a group is not resumed seed by seed
+    outs = [out / f"seed{seed}" for seed in args.seeds]
+    for run in outs:
+        if args.force and run.is_dir():
+            clear_run_dir(run)
+        check_new_run_dir(run)
+    source = Path(args.recipe)
+    print(f"training {args.recipe}, seeds {args.seeds} as one group -> {out}", file=sys.stderr)
+    results = train_group(recipes, outs, f"{source.parent.name}/{source.stem}", args.steps, plugins=plugins)
+    for seed, rows in zip(args.seeds, results, strict=True):
+        print(f"seed {seed}: " + ", ".join(f"phase {row['phase']} return {row['return_mean']:.1f}" for row in rows))
+    print(f"run directories: {out}/seed<k>; tables and figures: layered report {out}")
+    return 0
 
 
 def _resume(args: argparse.Namespace) -> int:

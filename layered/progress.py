@@ -8,7 +8,6 @@ import time
 
 from tqdm import tqdm
 
-from layered.metrics import Evaluation
 
 
 class Progress:
@@ -24,15 +23,15 @@ class Progress:
     def advance(self, steps: int) -> None:
         self.bar.update(steps)
 
-    def evaluated(self, step: int, result: Evaluation) -> None:
-        """Show an evaluation: in the bar's postfix, or as one line with the steps per second since the last."""
+    def evaluated(self, step: int, mean: float, std: float) -> None:
+        """Show an evaluation's mean return and its spread (over episodes, or over seeds): in the bar's
+        postfix, or as one line with the steps per second since the last."""
         if not self.lines:
-            self.bar.set_postfix_str(f"eval return {result.return_mean:.1f}")
+            self.bar.set_postfix_str(f"eval return {mean:.1f}")
             return
         now, (then, before) = time.perf_counter(), self._since
         rate = f", {(step - before) / (now - then):.0f} steps/s" if step > before else ""
-        print(f"{self.label}: step {step}/{self.total}, eval return {result.return_mean:.1f} "
-              f"± {result.return_std:.1f}{rate}", file=sys.stderr, flush=True)
+        print(f"{self.label}: step {step}/{self.total}, eval return {mean:.1f} ± {std:.1f}{rate}", file=sys.stderr, flush=True)
         self._since = (now, step)
 
     def close(self) -> None:

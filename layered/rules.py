@@ -117,6 +117,7 @@ class Rules:
         self.held = [np.zeros((rows, layer.size), np.float32) for layer in self.layers]
         self.inflight = [np.zeros((rows, layer.delay, layer.size), np.float32) for layer in self.layers]
         self.resume_at = [np.zeros(rows, np.int64) for _ in self.layers]  # the first step a repeating layer may decide
+        self.decided = [np.zeros((rows, layer.size), np.float32) for layer in self.layers]  # latest, as `decide` returned
 
     def to_json(self) -> dict[str, Any]:
         """The layers, the present ones and the action bounds, as plain JSON values (`from_json` reads them)."""
@@ -239,6 +240,7 @@ class Rules:
             if _any(kept_out):
                 outputs = np.where(kept_out[:, None], self._executed_as_output(i, composition), outputs)
         self.hold(i, outputs, rows)
+        self.decided[i][...] = outputs if _every(rows) else np.where(rows[:, None], outputs, self.decided[i])
         return outputs
 
     def _executed_as_output(self, i: int, composition: Composition) -> np.ndarray:

@@ -34,6 +34,7 @@ class RunInfo:
     label: str
     max_steps: int | None
     plugins: tuple[str, ...] = ()
+    group: tuple[int, ...] = ()  # the seeds trained together in one process with this one (layered.group)
 
 
 def steps_option(max_steps: int | None) -> str:
@@ -146,7 +147,8 @@ def prepare_run_dir(run_dir: Path, recipe_text: str, info: RunInfo, resume: bool
         return
     write_atomically(run_dir / "recipe.toml", recipe_text)
     write_atomically(run_dir / "run.json", json.dumps(
-        {"label": info.label, "max_steps": info.max_steps, "plugins": list(info.plugins)}, indent=2))
+        {"label": info.label, "max_steps": info.max_steps, "plugins": list(info.plugins), "group": list(info.group)},
+        indent=2))
 
 
 def read_run_info(run_dir: Path) -> RunInfo:
@@ -158,7 +160,7 @@ def read_run_info(run_dir: Path) -> RunInfo:
         raise RunDirError(f"{run_dir} is not a run directory (no recipe.toml and run.json){hint}")
     try:
         data = json.loads(path.read_text())
-        return RunInfo(str(data["label"]), data["max_steps"], tuple(data["plugins"]))
+        return RunInfo(str(data["label"]), data["max_steps"], tuple(data["plugins"]), tuple(data.get("group", ())))
     except (ValueError, KeyError, TypeError) as e:
         raise RunDirError(f"{path} is damaged ({e.__class__.__name__}: {e})") from None
 

@@ -156,7 +156,7 @@ def run_phase(run: Training, state: LoopState, phase: Phase, budget: int) -> Pha
         bar.close()
         env.close()
         eval_env.close()
-    return PhaseResult(state.phase, phase, state.step, state.curve[-1][1], _auc(recipe, state.curve))
+    return PhaseResult(state.phase, phase, state.step, state.curve[-1][1], curve_auc(recipe, state.curve))
 
 
 def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, env: LayeredEnv, eval_env: LayeredEnv,
@@ -242,7 +242,7 @@ def _evaluate(run: Training, state: LoopState, phase: Phase, eval_env: LayeredEn
         run.events.write(row)
     for stats in state.losses.values():
         stats.clear()
-    bar.evaluated(state.step, result)
+    bar.evaluated(state.step, result.return_mean, result.return_std)
 
 
 def _read_back_losses(state: LoopState, learners: dict[str, Learner]) -> None:
@@ -265,7 +265,8 @@ def _check_finite(values: np.ndarray, what: str, layer: str, state: LoopState) -
                        "the last checkpoint is intact (lower the learning rate, or check the environment)")
 
 
-def _auc(recipe: Recipe, curve: list[tuple[int, Evaluation]]) -> float | None:
+def curve_auc(recipe: Recipe, curve: list[tuple[int, Evaluation]]) -> float | None:
+    """The normalised area under a phase's evaluation curve, where the recipe's environment has a return range."""
     return_range = recipe.return_range()
     if return_range is None:
         return None

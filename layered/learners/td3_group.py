@@ -128,7 +128,8 @@ class StackedAdam:
 def _unstack(t: torch.Tensor, k: int, index: int) -> torch.Tensor:
     """Seed k's slice of a stacked weight (even index, `[K, in, out]`) or bias (odd, `[K, 1, out]`),
     as an `nn.Linear` holds it."""
-    return t[k].T.contiguous() if index % 2 == 0 else t[k, 0].clone()
+    t = t.detach()
+    return t[k].T.clone(memory_format=torch.contiguous_format) if index % 2 == 0 else t[k, 0].clone()
 
 
 def _restack(t: torch.Tensor, index: int) -> torch.Tensor:
@@ -198,6 +199,10 @@ class TD3Group:
             noise = self.rng.normal(0.0, self.config.exploration_noise, action.shape) * (high - low) / 2
             action = np.clip(action + noise, low, high)
         return action.astype(np.float32)
+
+    def act_macs(self) -> int:
+        """Multiply-accumulates of one seed's action (as a single learner's `act_macs`)."""
+        return sum(w.shape[1] * w.shape[2] for w in self.actor.weights)
 
     def random_action(self) -> np.ndarray:
         """[K, action] warm-up actions: uniform over `warmup_range` of the range, about its centre."""

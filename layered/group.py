@@ -1,0 +1,350 @@
+"""Training K seeds of one recipe as one computation: `layered train RECIPE --seeds 0-4`.
+
+Every base step, the K stacks step together: one `Rules` over K rows decides for every seed at once
+(layers due at different steps after a reset, a gate committing in some seeds: masks over the rows),
+each layer's TD3 learners of the K seeds act as one stacked network (`TD3Group`), the K environments
+step, and each learning layer updates the seeds it decided in with one masked, batched update. What
+the single loop (`layered.trainer`) does per episode end, evaluation and phase end is done per seed,
+and each seed writes its own run directory in the single run's format, so `eval`, `report` and
+`export` take any one seed. The numbers are a seed's own but not bit-identical to its single run (the
+group draws its noise and minibatches from generators of its own, and batched products sum in
+another order); the same group run twice writes the same files.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomli_w
+import torch
+
+from layered.checkpoint import save_checkpoint
+from layered.env_group import EnvGroup
+from layered.group_eval import evaluate_group
+from layered.learner_set import build_learners, keep_start_weights, start_from_weights
+from layered.learners.td3_group import GroupLosses, TD3Group
+from layered.logs import CsvLog
+from layered.orders import Phase
+from layered.progress import Progress
+from layered.recipe import Recipe, RecipeError, load_recipe, resolved
+from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
+from layered.rundir import RunInfo, check_new_run_dir, prepare_run_dir, writing
+from layered.rules import Rules
+from layered.runs import warmup_warnings
+from layered.runstate import LoopState
+from layered.stack import Stack
+from layered.trainer import (
+    FRESH_MEASURES,
+    Diverged,
+    PhaseResult,
+    curve_auc,
+    phase_budget,
+    phase_row,
+    phases_of,
+)
+
+
+@dataclass
+class Seed:
+    """One seed of a group: its recipe, its run directory and logs, and its loop state."""
+
+    recipe: Recipe
+    out: Path
+    metrics: CsvLog
+    episodes: CsvLog
+    state: LoopState = field(default_factory=LoopState)
+
+
+@dataclass
+class Pending:
+    """Per row, a learning layer's latest decision and what has followed it: its next transitions."""
+
+    seen: np.ndarray
+    output: np.ndarray
+    reward: np.ndarray
+    elapsed: np.ndarray
+    open: np.ndarray  # whether the row has decided this episode
+
+    @classmethod
+    def empty(cls, rows: int, obs: int, size: int) -> Pending:
+        return cls(np.zeros((rows, obs), np.float32), np.zeros((rows, size), np.float32), np.zeros(rows),
+                   np.zeros(rows, np.int64), np.zeros(rows, bool))
+
+
+def check_group(recipe: Recipe) -> None:
+    """Refuse, naming each key, what keeps a recipe from training as a group."""
+    out = []
+    for i, layer in enumerate(recipe.layers):
+        kind = recipe.learner_config(i).kind
+        if kind != "td3":
+            out.append((f"layers[{i}].learner.kind", f"layer {layer.name!r} uses the {kind!r} learner, which does "
+                        "not train as a group yet (train its seeds with `layered sweep`)"))
+    if recipe.log.tensorboard:
+        out.append(("log.tensorboard", "a group writes no TensorBoard events yet"))
+    if out:
+        raise RecipeError("recipe", out)
+
+
+def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max_steps: int | None = None,
+                progress: bool = True, plugins: Sequence[str] = ()) -> list[list[dict[str, Any]]]:
+    """Train the recipes (one recipe's seeds: they differ in `train.seed` alone) as one group, seed k
+    into `outs[k]`; the results rows of every phase, per seed."""
+    check_group(recipes[0])
+    for warning in warmup_warnings(recipes[0], max_steps):
+        print(f"layered: warning: {warning}", file=sys.stderr)
+    singles = []
+    for recipe in recipes:
+        learners = build_learners(recipe)
+        start_from_weights(recipe, learners)
+        singles.append(learners)
+    for out in outs:
+        check_new_run_dir(out)
+    info = RunInfo(label, max_steps, tuple(plugins), tuple(recipe.train.seed for recipe in recipes))
+    with ExitStack() as locks:
+        seeds = []
+        for recipe, out, learners in zip(recipes, outs, singles, strict=True):
+            locks.enter_context(writing(out))
+            prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume=False)
+            keep_start_weights(recipe, learners, out / "checkpoints")
+            seeds.append(Seed(recipe, out, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
+                              CsvLog(out / "episodes.csv", EPISODE_FIELDS)))
+        for seed in seeds:
+            seed.metrics.start()
+            seed.episodes.start()
+        group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress)
+        del singles
+        group.train()
+        for seed in seeds:
+            write_results(seed.recipe, seed.state.rows, seed.out, label)
+    return [seed.state.rows for seed in seeds]
+
+
+def _stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]) -> dict[str, TD3Group]:
+    """Each layer's learners of every seed as one group, its generators seeded by the layer and the seeds."""
+    seeds = [recipe.train.seed for recipe in recipes]
+    return {name: TD3Group([learners[name] for learners in singles],
+                           seed=int(np.random.SeedSequence([i, *seeds]).generate_state(1)[0]))
+            for i, name in enumerate(recipes[0].layer_names())}
+
+
+class Group:
+    """K seeds of a recipe training together, phase by phase."""
+
+    def __init__(self, seeds: list[Seed], learners: dict[str, TD3Group], max_steps: int | None, progress: bool):
+        self.seeds, self.learners, self.max_steps, self.progress = seeds, learners, max_steps, progress
+        self.recipe = seeds[0].recipe
+        self.rows = len(seeds)
+        self.names = self.recipe.layer_names()
+
+    def train(self) -> None:
+        """Every phase of the training order, each seed's results row recorded at its end."""
+        phases = phases_of(self.recipe)
+        for p, phase in enumerate(phases):
+            for seed in self.seeds:
+                seed.state.start_phase(p, phase.learn, self.recipe.eval.every, self.recipe.eval.every)
+            results = self.run_phase(phase, phase_budget(self.recipe, phase, self.max_steps))
+            rows = self._finish_phase(phase, results)
+            for seed, row in zip(self.seeds, rows, strict=True):
+                seed.state.finish_phase(row)
+
+    def _stacks(self, phase: Phase, evaluation: bool) -> tuple[Stack, Rules, EnvGroup]:
+        """The phase's stack (for its layers' spaces and discounts), its rules over the K rows, and K envs."""
+        envs = EnvGroup(self.recipe.env.id, self.rows)
+        stack = Stack(self.recipe, envs.observation_space, envs.action_space, active=list(phase.active),
+                      evaluation=evaluation)
+        rules = Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, self.rows)
+        return stack, rules, envs
+
+    def run_phase(self, phase: Phase, budget: int) -> list[PhaseResult]:
+        """Train `phase.learn` for `budget` base steps in every seed, the other present layers frozen."""
+        stack, rules, envs = self._stacks(phase, evaluation=False)
+        evaluator = self._stacks(phase, evaluation=True)
+        p = self.seeds[0].state.phase
+        learn = [self.names.index(name) for name in phase.learn]
+        warmups = {i: self.recipe.warmup(self.names[i]) for i in learn}
+        pending = {i: Pending.empty(self.rows, stack.observation_spaces[i].shape[0], stack.layers[i].rules.size)
+                   for i in learn}
+        decisions = {i: np.zeros(self.rows, np.int64) for i in learn}
+        losses: dict[str, list[GroupLosses]] = {self.names[i]: [] for i in learn}
+        every = np.ones(self.rows, bool)
+        bar = Progress(f"phase {p}: {'+'.join(phase.learn)} ({self.rows} seeds)", budget, 0, self.progress)
+
+        def act(i: int, seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
+            full = np.zeros((self.rows, seen.shape[1]), np.float32)
+            full[deciding] = seen
+            group = self.learners[self.names[i]]
+            if i not in pending:
+                return group.act(full, explore=False)[deciding]
+            mine = pending[i]
+            self._store(i, mine, deciding & mine.open, full, np.zeros(self.rows, bool), stack)
+            explored = group.act(full, explore=True)
+            outputs = np.where((decisions[i] < warmups[i])[:, None], group.random_action(), explored)
+            mine.seen[deciding], mine.open[deciding] = seen, True
+            mine.reward[deciding], mine.elapsed[deciding] = 0.0, 0
+            decisions[i] += deciding
+            return outputs[deciding]
+
+        try:
+            self._evaluate(phase, evaluator, losses, 0, bar)
+            envs.reset(every, [seed.recipe.train.seed + p for seed in self.seeds])
+            rules.reset()
+            returns, lengths = np.zeros(self.rows), np.zeros(self.rows, np.int64)
+            step = 0
+            while step < budget:
+                decided = rules.decide_all(envs.obs, act)
+                for i, rows in decided.items():
+                    if i in pending:
+                        pending[i].output[rows] = rules.decided[i][rows]
+                        _check_finite(rules.decided[i][rows], "action", f"layer {self.names[i]!r}", p, step)
+                composition = rules.compose()
+                reward, terminated, truncated = envs.step(composition.action, every)
+                _check_finite(envs.obs, "observation", "the environment", p, step)
+                shares = rules.layer_rewards(reward, composition)
+                rules.tick()
+                for i, mine in pending.items():
+                    mine.reward += np.where(mine.open, shares[i], 0.0)
+                    mine.elapsed += mine.open
+                returns += reward
+                lengths += 1
+                step += 1
+                bar.advance(1)
+                ended = terminated | truncated
+                if ended.any():
+                    for i, mine in pending.items():
+                        self._store(i, mine, ended & mine.open, rules.observation(i, envs.obs), terminated, stack)
+                        mine.open[ended] = False
+                    for k in np.flatnonzero(ended):
+                        self.seeds[k].episodes.write({"phase": p, "step": step, "return": returns[k],
+                                                      "length": int(lengths[k])})
+                        self.seeds[k].state.episode += 1
+                    returns[ended], lengths[ended] = 0.0, 0
+                    envs.reset(ended, [None] * self.rows)
+                    rules.reset(ended)
+                for i in learn:
+                    ready = decided[i] & (decisions[i] > warmups[i])
+                    if ready.any():
+                        for _ in range(self.recipe.layers[i].updates):
+                            if (result := self.learners[self.names[i]].update(ready)) is not None:
+                                losses[self.names[i]].append(result)
+                if step >= self.seeds[0].state.next_eval:
+                    self._evaluate(phase, evaluator, losses, step, bar)
+                    for seed in self.seeds:
+                        seed.state.next_eval += self.recipe.eval.every
+            if self.seeds[0].state.curve[-1][0] != step:
+                self._evaluate(phase, evaluator, losses, step, bar)
+        finally:
+            bar.close()
+            envs.close()
+            evaluator[2].close()
+        return [PhaseResult(p, phase, step, seed.state.curve[-1][1], curve_auc(self.recipe, seed.state.curve))
+                for seed in self.seeds]
+
+    def _store(self, i: int, mine: Pending, rows: np.ndarray, next_seen: np.ndarray, terminated: np.ndarray,
+               stack: Stack) -> None:
+        """Store layer i's completed transitions in the `rows`, now that it sees `next_seen`."""
+        if not rows.any():
+            return
+        layer = stack.layers[i]
+        discount = layer.gamma ** np.where(layer.discount_per_step, mine.elapsed, 1)
+        self.learners[self.names[i]].observe(mine.seen, mine.output, mine.reward, next_seen, terminated, discount,
+                                             rows)
+
+    def _evaluate(self, phase: Phase, evaluator: tuple[Stack, Rules, EnvGroup], losses: dict[str, list[GroupLosses]],
+                  step: int, bar: Progress) -> None:
+        """Evaluate every seed's present layers now and log its row, with its mean losses since the last."""
+        results = self._evaluations(phase, evaluator, self.recipe.eval.episodes, self.recipe.eval.seed_offset)
+        per_seed = _read_back(losses, self.rows, self.seeds[0].state.phase, step)
+        for k, (seed, result) in enumerate(zip(self.seeds, results, strict=True)):
+            state = seed.state
+            state.curve.append((step, result))
+            if state.best_index() == len(state.curve) - 1:
+                state.best = {name: self.learners[name].seed_state_dict(k) for name in phase.learn}
+            seed.metrics.write({"phase": state.phase, "learn": "+".join(phase.learn), "step": step, **result.row(),
+                                **mean_losses(per_seed[k], self.learners)})
+        returns = np.array([r.return_mean for r in results])
+        bar.evaluated(step, float(returns.mean()), float(returns.std()))
+
+    def _evaluations(self, phase: Phase, evaluator: tuple[Stack, Rules, EnvGroup], episodes: int,
+                     offset: int) -> list[Any]:
+        """Each seed's evaluation of its present layers over `episodes` episodes, seeded at its seed + `offset`."""
+        stack, rules, envs = evaluator
+        macs = {self.names[i]: self.learners[self.names[i]].act_macs() for i in stack.active}
+        return evaluate_group(rules, envs, lambda i, obs: self.learners[self.names[i]].act(obs, explore=False), macs,
+                              episodes, [seed.recipe.train.seed + offset for seed in self.seeds])
+
+    def _finish_phase(self, phase: Phase, results: list[PhaseResult]) -> list[dict[str, Any]]:
+        """Each seed's phase end as the single loop's: its final and best weights saved, both evaluated on
+        fresh episodes, and the learners left holding the ones `train.select` hands on; its results row."""
+        rows = []
+        for k, (seed, result) in enumerate(zip(self.seeds, results, strict=True)):
+            folder = seed.out / "checkpoints"
+            for name in phase.learn:
+                save_checkpoint(folder / f"{name}.pt", name, self.learners[name].seed_state_dict(k))
+                save_checkpoint(folder / f"{name}.best.pt", name, seed.state.best[name])
+            best_step, best = seed.state.curve[seed.state.best_index()]
+            rows.append({**phase_row(result), "best_step": best_step, "best_return_mean": best.return_mean})
+        final = {name: [self.learners[name].seed_state_dict(k) for k in range(self.rows)] for name in phase.learn}
+        self._fresh(phase, rows, "final")
+        for k, seed in enumerate(self.seeds):
+            for name in phase.learn:
+                self.learners[name].load_seed_state_dict(k, seed.state.best[name])
+        self._fresh(phase, rows, "best")
+        if self.recipe.train.select == "final":
+            for name, states in final.items():
+                for k, state in enumerate(states):
+                    self.learners[name].load_seed_state_dict(k, state)
+        return rows
+
+    def _fresh(self, phase: Phase, rows: list[dict[str, Any]], label: str) -> None:
+        """Add each seed's `fresh_<label>_<measure>` evaluation on `eval.fresh_episodes` episodes to its row."""
+        if not self.recipe.eval.fresh_episodes:
+            return
+        evaluator = self._stacks(phase, evaluation=True)
+        try:
+            results = self._evaluations(phase, evaluator, self.recipe.eval.fresh_episodes,
+                                        self.recipe.eval.fresh_seed_offset)
+        finally:
+            evaluator[2].close()
+        for row, result in zip(rows, results, strict=True):
+            row |= {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
+
+
+def _read_back(losses: dict[str, list[GroupLosses]], rows: int, phase: int, step: int
+               ) -> list[dict[str, list[dict[str, float | None]]]]:
+    """The losses of each layer's updates since the last read-back, per seed (each update a seed took
+    part in, as the single loop's `UpdateStats`), read off the device in one copy per layer; a
+    non-finite one stops the group."""
+    out: list[dict[str, list[dict[str, float | None]]]] = [{} for _ in range(rows)]
+    for name, updates in losses.items():
+        names = TD3Group.loss_names
+        values = torch.stack([u[n][0] for u in updates for n in names if n in u]).cpu().numpy() if updates else None
+        at = 0
+        for k in range(rows):
+            out[k][name] = []
+        for update in updates:
+            taken = {n: values[at + j] for j, n in enumerate(n for n in names if n in update)}
+            at += len(taken)
+            for k in np.flatnonzero(update["critic"][1]):
+                stats = {f"{n}_loss": float(taken[n][k]) if n in update and update[n][1][k] else None for n in names}
+                _check_finite(np.array([v for v in stats.values() if v is not None]), "loss", f"layer {name!r}",
+                              phase, step)
+                out[k][name].append(stats)
+        updates.clear()
+    return out
+
+
+def _check_finite(values: np.ndarray, what: str, who: str, phase: int, step: int) -> None:
+    if not np.all(np.isfinite(values)):
+        raise Diverged(f"{who} met a non-finite {what} in phase {phase} at step {step} of a group; "
+                       "a group keeps no checkpoint yet (lower the learning rate, or check the environment)")
+
+
+def group_recipes(path: str | Path, seeds: Sequence[int], overrides: Sequence[str]) -> list[Recipe]:
+    """The recipe at `path` with `overrides`, once per seed."""
+    return [load_recipe(path, [*overrides, f"train.seed={seed}"]) for seed in seeds]

@@ -1,0 +1,134 @@
+"""Seeds trained as one group (`layered train --seeds`): each seed's transitions are those its own stack
+gives, each seed writes an ordinary run directory, and a group run is deterministic."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from layered.agents import make_aec_env
+from layered.cli import main
+from layered.evaluate import evaluate
+from layered.group import Group, Seed, _stack_learners, group_recipes
+from layered.learner_set import build_learners, load_learners
+from layered.logs import CsvLog
+from layered.results import EPISODE_FIELDS, metrics_fields
+from layered.rundir import RunDirError
+from layered.runs import resume
+from layered.trainer import phases_of
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = ["train.warmup=40", "eval.every=150", "eval.episodes=1", "eval.fresh_episodes=1"]
+
+
+def tiny_group(recipe, seeds, tmp_path, overrides=()):
+    recipes = group_recipes(ROOT / "recipes" / recipe, seeds, [*TINY, *overrides])
+    singles = [build_learners(r) for r in recipes]
+    seeds_ = [Seed(r, tmp_path / f"seed{r.train.seed}", CsvLog(tmp_path / f"m{r.train.seed}.csv", metrics_fields(r)),
+                   CsvLog(tmp_path / f"e{r.train.seed}.csv", EPISODE_FIELDS))
+              for r in recipes]
+    for seed in seeds_:
+        seed.metrics.start()
+        seed.episodes.start()
+    return Group(seeds_, _stack_learners(recipes, singles), None, False), recipes, singles
+
+
+def stored(group, name, k):
+    """Seed k's transitions of layer `name` in the order stored: obs, action, reward, next obs, not done, discount."""
+    learner = group.learners[name]
+    rows = learner._rows[k, : int(learner.sizes[k])].numpy()
+    return [rows[:, a:b] for a, b in zip(learner._cuts, learner._cuts[1:], strict=False)]
+
+
+@pytest.mark.parametrize("recipe, overrides", [
+    ("inverted-double-pendulum/tla-realtime.toml", ["train.order=joint"]),  # delays, early ends, 2 layers learn
+    ("pendulum/tla-o.toml", ["train.order=joint", "train.warmup=400"]),  # a gate committing and deferring
+    ("research/pendulum-gate-over-residual-3.toml", ["train.order=joint", "train.phases=[]"]),  # 3 layers
+])
+def test_each_seeds_transitions_are_those_its_own_stack_gives(recipe, overrides, tmp_path):
+    """Every action of the phase is a warm-up draw, so the group's stored transitions can be replayed
+    action by action through each seed's own agent view (the single loop's semantics): the same
+    observations, rewards, discounts and ends, for every layer."""
+    group, recipes, _ = tiny_group(recipe, [0, 3], tmp_path, [*overrides, "train.warmup=100000"])
+    phase = phases_of(recipes[0])[0]
+    for seed in group.seeds:
+        seed.state.start_phase(0, phase.learn, 10**9, 10**9)
+    group.run_phase(phase, 230)
+    for k, recipe_k in enumerate(recipes):
+        env = make_aec_env(recipe_k, active=list(phase.active))
+        env.reset(seed=recipe_k.train.seed)
+        theirs = {name: stored(group, name, k) for name in phase.learn}
+        actions = {name: iter(theirs[name][1]) for name in phase.learn}
+        mine: dict[str, list] = {name: [] for name in phase.learn}
+        finished = False
+        while not finished:
+            for name in env.agent_iter():
+                obs, _, terminated, truncated, info = env.last()
+                if "transition" in info:
+                    mine[name].append(info["transition"])
+                if terminated or truncated:
+                    env.step(None)
+                    continue
+                action = next(actions[name], None)
+                if action is None:
+                    finished = True
+                    break
+                env.step(action)
+            if not finished:
+                env.reset()
+        for name in phase.learn:
+            obs, action, reward, next_obs, not_done, discount = theirs[name]
+            # the replay ends where the first layer runs out of actions: at most a slow period short
+            assert len(mine[name]) >= len(obs) - 8 > 10, name
+            for t, transition in enumerate(mine[name][: len(obs)]):
+                assert np.allclose(transition.obs, obs[t], atol=1e-6), (name, t)
+                assert np.allclose(transition.action, action[t]), (name, t)
+                assert transition.reward == pytest.approx(float(reward[t, 0]), abs=1e-5), (name, t)
+                assert np.allclose(transition.next_obs, next_obs[t], atol=1e-6), (name, t)
+                assert (1.0 - transition.terminated) == not_done[t, 0], (name, t)
+                assert transition.discount == pytest.approx(float(discount[t, 0])), (name, t)
+        env.close()
+
+
+def test_a_group_evaluates_each_seed_as_its_own_stack_would(tmp_path):
+    group, recipes, singles = tiny_group("pendulum/tla-c.toml", [0, 1], tmp_path)
+    evaluator = group._stacks(phases_of(recipes[0])[-1], evaluation=True)
+    together = group._evaluations(phases_of(recipes[0])[-1], evaluator, 2, 100)
+    for k, recipe in enumerate(recipes):
+        env = make_aec_env(recipe, evaluation=True, keep_trace=True)
+        alone = evaluate(env, singles[k], 2, recipe.train.seed + 100)
+        assert together[k].return_mean == pytest.approx(alone.return_mean, rel=1e-5)
+        assert together[k].repetition == alone.repetition and together[k].decided == alone.decided
+        env.close()
+
+
+def test_a_group_writes_each_seed_an_ordinary_run_directory_and_writes_it_again_the_same(tmp_path, capsys):
+    recipe = str(ROOT / "recipes/pendulum/tla-c.toml")
+    for out in ("a", "b"):
+        assert main(["train", recipe, "--seeds", "2,5", "--steps", "300", "--out", str(tmp_path / out), *TINY]) == 0
+    for seed in (2, 5):
+        a, b = tmp_path / "a" / f"seed{seed}", tmp_path / "b" / f"seed{seed}"
+        for name in ("metrics.csv", "episodes.csv", "results.json", "recipe.toml"):
+            assert (a / name).read_bytes() == (b / name).read_bytes(), name
+        recipe_k = group_recipes(recipe, [seed], TINY)[0]
+        load_learners(recipe_k, a)  # an ordinary checkpoint of every layer
+    assert (tmp_path / "a/seed2/metrics.csv").read_bytes() != (tmp_path / "a/seed5/metrics.csv").read_bytes()
+    capsys.readouterr()
+    assert main(["eval", str(tmp_path / "a/seed5"), "--episodes", "1"]) == 0
+    assert main(["report", str(tmp_path / "a"), "--out", str(tmp_path / "report")]) == 0
+    assert "pendulum/tla-c" in capsys.readouterr().out
+    with pytest.raises(RunDirError, match="group of seeds"):
+        resume(tmp_path / "a/seed2")
+
+
+def test_what_a_group_cannot_train_is_refused_before_anything_is_written(tmp_path, capsys):
+    out = tmp_path / "g"
+    assert main(["train", str(ROOT / "recipes/pendulum/temporl.toml"), "--seeds", "2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'temporl' learner" in err[0] and "layered sweep" in err[0]
+    assert not out.exists()
+    for bad in ("3-1", "1,1", "x"):
+        with pytest.raises(SystemExit) as stop:
+            main(["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", bad, "--out", str(out)])
+        assert stop.value.code == 2 and f"got {bad!r}" in capsys.readouterr().err
+    assert not out.exists()
