@@ -29,7 +29,7 @@ class EnvGroup:
     def reset(self, rows: np.ndarray, seeds: Sequence[int | None]) -> None:
         """Start an episode in each row of the `rows` mask; `seeds[k]` seeds row k's environment (None:
         its generator goes on)."""
-        for k in np.flatnonzero(rows):
+        for k in np.flatnonzero(rows).tolist():
             self.obs[k], _ = self.envs[k].reset(seed=seeds[k])
             if seeds[k] is not None:
                 self.envs[k].action_space.seed(seeds[k])
@@ -40,7 +40,7 @@ class EnvGroup:
         reward = np.zeros(len(self.envs))
         terminated = np.zeros(len(self.envs), bool)
         truncated = np.zeros(len(self.envs), bool)
-        for k in np.flatnonzero(rows):
+        for k in np.flatnonzero(rows).tolist():
             self.obs[k], r, terminated[k], truncated[k], _ = self.envs[k].step(actions[k])
             reward[k] = float(r)
         return reward, terminated, truncated

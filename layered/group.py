@@ -37,7 +37,7 @@ from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_r
 from layered.rundir import RunInfo, check_new_run_dir, prepare_run_dir, writing
 from layered.rules import Rules
 from layered.runs import warmup_warnings
-from layered.runstate import LoopState
+from layered.runstate import LoopState, UpdateStats
 from layered.stack import Stack
 from layered.trainer import (
     FRESH_MEASURES,
@@ -219,19 +219,11 @@ class Group:
                     for i, mine in pending.items():
                         self._store(i, mine, ended & mine.open, rules.observation(i, envs.obs), terminated, stack)
                         mine.open[ended] = False
-                    for k in np.flatnonzero(ended):
-                        self.seeds[k].episodes.write({"phase": p, "step": step, "return": returns[k],
-                                                      "length": int(lengths[k])})
-                        self.seeds[k].state.episode += 1
-                    returns[ended], lengths[ended] = 0.0, 0
+                    self._log_episodes(ended, p, step, returns, lengths)
                     envs.reset(ended, [None] * self.rows)
                     rules.reset(ended)
                 for i in learn:
-                    ready = decided[i] & (decisions[i] > warmups[i])
-                    if ready.any():
-                        for _ in range(self.recipe.layers[i].updates):
-                            if (result := self.learners[self.names[i]].update(ready)) is not None:
-                                losses[self.names[i]].append(result)
+                    self._update(self.names[i], decided[i] & (decisions[i] > warmups[i]), losses)
                 if step >= self.seeds[0].state.next_eval:
                     self._evaluate(phase, evaluator, losses, step, bar)
                     for seed in self.seeds:
@@ -244,6 +236,23 @@ class Group:
             evaluator[2].close()
         return [PhaseResult(p, phase, step, seed.state.curve[-1][1], curve_auc(self.recipe, seed.state.curve))
                 for seed in self.seeds]
+
+    def _log_episodes(self, ended: np.ndarray, phase: int, step: int, returns: np.ndarray, lengths: np.ndarray
+                      ) -> None:
+        """Log the episodes that ended in the `ended` rows, and start their counts again."""
+        for k in np.flatnonzero(ended):
+            row = {"phase": phase, "step": step, "return": returns[k], "length": int(lengths[k])}
+            self.seeds[k].episodes.write(row)
+            self.seeds[k].state.episode += 1
+        returns[ended], lengths[ended] = 0.0, 0
+
+    def _update(self, name: str, ready: np.ndarray, losses: dict[str, list[GroupLosses]]) -> None:
+        """Layer `name`'s updates (`updates` per decision) in the seeds of the `ready` mask."""
+        if not ready.any():
+            return
+        for _ in range(self.recipe.layers[self.names.index(name)].updates):
+            if (result := self.learners[name].update(ready)) is not None:
+                losses[name].append(result)
 
     def _store(self, i: int, mine: Pending, rows: np.ndarray, next_seen: np.ndarray, terminated: np.ndarray,
                stack: Stack) -> None:
@@ -266,7 +275,7 @@ class Group:
             if state.best_index() == len(state.curve) - 1:
                 state.best = {name: self.learners[name].seed_state_dict(k) for name in phase.learn}
             seed.metrics.write({"phase": state.phase, "learn": "+".join(phase.learn), "step": step, **result.row(),
-                                **mean_losses(per_seed[k], self.learners)})
+                                **mean_losses(per_seed[k], {n: TD3Group.loss_names for n in phase.learn})})
         returns = np.array([r.return_mean for r in results])
         bar.evaluated(step, float(returns.mean()), float(returns.std()))
 
@@ -316,22 +325,21 @@ class Group:
 
 
 def _read_back(losses: dict[str, list[GroupLosses]], rows: int, phase: int, step: int
-               ) -> list[dict[str, list[dict[str, float | None]]]]:
+               ) -> list[dict[str, list[UpdateStats]]]:
     """The losses of each layer's updates since the last read-back, per seed (each update a seed took
     part in, as the single loop's `UpdateStats`), read off the device in one copy per layer; a
     non-finite one stops the group."""
-    out: list[dict[str, list[dict[str, float | None]]]] = [{} for _ in range(rows)]
+    out: list[dict[str, list[UpdateStats]]] = [{name: [] for name in losses} for _ in range(rows)]
+    names = TD3Group.loss_names
     for name, updates in losses.items():
-        names = TD3Group.loss_names
-        values = torch.stack([u[n][0] for u in updates for n in names if n in u]).cpu().numpy() if updates else None
-        at = 0
-        for k in range(rows):
-            out[k][name] = []
+        if not updates:
+            continue
+        values = iter(torch.stack([u[n][0] for u in updates for n in names if n in u]).cpu().numpy())
         for update in updates:
-            taken = {n: values[at + j] for j, n in enumerate(n for n in names if n in update)}
-            at += len(taken)
-            for k in np.flatnonzero(update["critic"][1]):
-                stats = {f"{n}_loss": float(taken[n][k]) if n in update and update[n][1][k] else None for n in names}
+            taken = {n: (next(values), update[n][1]) for n in names if n in update}
+            for k in np.flatnonzero(update["critic"][1]).tolist():
+                stats: UpdateStats = {f"{n}_loss": float(v[k]) if took[k] else None for n, (v, took) in taken.items()}
+                stats |= {f"{n}_loss": None for n in names if n not in taken}
                 _check_finite(np.array([v for v in stats.values() if v is not None]), "loss", f"layer {name!r}",
                               phase, step)
                 out[k][name].append(stats)

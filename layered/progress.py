@@ -31,7 +31,8 @@ class Progress:
             return
         now, (then, before) = time.perf_counter(), self._since
         rate = f", {(step - before) / (now - then):.0f} steps/s" if step > before else ""
-        print(f"{self.label}: step {step}/{self.total}, eval return {mean:.1f} ± {std:.1f}{rate}", file=sys.stderr, flush=True)
+        print(f"{self.label}: step {step}/{self.total}, eval return {mean:.1f} ± {std:.1f}{rate}", file=sys.stderr,
+              flush=True)
         self._since = (now, step)
 
     def close(self) -> None:

@@ -4,14 +4,14 @@ end results.json, results.md and the learning curves."""
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from layered.checkpoint import write_atomically
-from layered.learners import LEARNERS, Learner
+from layered.learners import LEARNERS
 from layered.metrics import Evaluation
 from layered.report import plot_curves, results_table
 from layered.runstate import UpdateStats
@@ -29,11 +29,12 @@ def metrics_fields(recipe: Recipe) -> list[str]:
     return ["phase", "learn", "step", *Evaluation.columns(names), *losses]
 
 
-def mean_losses(losses: dict[str, list[UpdateStats]], learners: Mapping[str, Learner]) -> dict[str, float]:
-    """Each layer's mean of each of its learner's losses over the given updates (NaN where there are none)."""
+def mean_losses(losses: dict[str, list[UpdateStats]], loss_names: Mapping[str, Sequence[str]]) -> dict[str, float]:
+    """Each layer's mean of each of its learner's losses (`loss_names[layer]`) over the given updates (NaN
+    where there are none)."""
     out = {}
     for name, stats in losses.items():
-        for kind in type(learners[name]).loss_names:
+        for kind in loss_names[name]:
             values = [v for s in stats if (v := s[f"{kind}_loss"]) is not None]
             out[f"{kind}_loss_{name}"] = float(np.mean(values)) if values else float("nan")
     return out

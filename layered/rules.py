@@ -117,7 +117,7 @@ class Rules:
         self.held = [np.zeros((rows, layer.size), np.float32) for layer in self.layers]
         self.inflight = [np.zeros((rows, layer.delay, layer.size), np.float32) for layer in self.layers]
         self.resume_at = [np.zeros(rows, np.int64) for _ in self.layers]  # the first step a repeating layer may decide
-        self.decided = [np.zeros((rows, layer.size), np.float32) for layer in self.layers]  # latest, as `decide` returned
+        self.decided = [np.zeros((rows, layer.size), np.float32) for layer in self.layers]  # as `decide` returned them
 
     def to_json(self) -> dict[str, Any]:
         """The layers, the present ones and the action bounds, as plain JSON values (`from_json` reads them)."""

@@ -236,7 +236,7 @@ def _evaluate(run: Training, state: LoopState, phase: Phase, eval_env: LayeredEn
     if state.best_index() == len(state.curve) - 1:
         state.best = {name: copy.deepcopy(run.learners[name].state_dict()) for name in phase.learn}
     row = {"phase": state.phase, "learn": "+".join(phase.learn), "step": state.step, **result.row(),
-           **mean_losses(state.losses, run.learners)}
+           **mean_losses(state.losses, {name: type(run.learners[name]).loss_names for name in state.losses})}
     run.metrics.write(row)
     if run.events is not None:
         run.events.write(row)

@@ -100,6 +100,7 @@ class StackedAdam:
         for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True):
             shape = (-1,) + (1,) * (p.dim() - 1)
             mask = rows.view(shape)
+            assert p.grad is not None, "step follows a backward pass through every parameter"
             grad = torch.where(mask > 0, p.grad, 0.0)  # a left-out seed's gradient may be of garbage rows
             m.lerp_(grad, (1 - self.beta1) * mask)
             v.mul_(1 - (1 - self.beta2) * mask).addcmul_(grad, grad, value=1 - self.beta2)
@@ -169,9 +170,10 @@ class TD3Group:
                                      first.actor_opt.state_dict())
         self.critic_opt = StackedAdam([*self.q1.parameters(), *self.q2.parameters()], self.config.lr, self.k,
                                       first.critic_opt.state_dict())
-        self._critic_pairs = ([*self.q1_target.parameters(), *self.q2_target.parameters()],
+        Pair = tuple[list[torch.Tensor], list[torch.Tensor]]  # (targets, their sources)
+        self._critic_pairs: Pair = ([*self.q1_target.parameters(), *self.q2_target.parameters()],
                               [*self.q1.parameters(), *self.q2.parameters()])
-        self._actor_pair = (list(self.actor_target.parameters()), list(self.actor.parameters()))
+        self._actor_pair: Pair = (list(self.actor_target.parameters()), list(self.actor.parameters()))
         self.centre, self.scale = first.actor.centre.to(self.device), first.actor.scale.to(self.device)
         self._low, self._high = first._low, first._high
         self.obs_dim, self.act_dim = first.obs_space.shape[0], first.action_space.shape[0]
