@@ -105,10 +105,14 @@ def _parser() -> argparse.ArgumentParser:
                     help="also write TensorBoard event files (as log.tensorboard=true; extra layered[tensorboard])")
     _plugin_option(tr)
     rs = sub.add_parser("resume", help="continue a stopped run from its last checkpoint",
-                        epilog="the run continues with the recipe and --steps it was started with")
+                        epilog="the run continues with the recipe and --steps it was started with, but for the settings --set "
+                        "changes")
     rs.add_argument("run_dir", type=Path, help="run directory of a stopped run")
     rs.add_argument("--steps", type=_positive, help="must be the --steps the run was started with (a check)")
     rs.add_argument("--threads", type=_positive, help="torch threads (use 1 per process when running several)")
+    rs.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                    help="continue with a changed setting (a layer's learner settings, action_penalty, updates), "
+                    "e.g. --set layers.fast.learner.lr=1e-4 after a divergence; recorded in run.json")
     ev = sub.add_parser("eval", help="evaluate a trained run directory")
     ev.add_argument("run_dir", type=Path, help="run directory of a trained run")
     ev.add_argument("--episodes", type=_positive, help="episodes (default: the recipe's eval.episodes)")
@@ -227,7 +231,7 @@ def _resume(args: argparse.Namespace) -> int:
         print(f"{args.run_dir} has finished; nothing to resume", file=sys.stderr)
         return 0
     print(f"resuming {args.run_dir}", file=sys.stderr)
-    resume(args.run_dir, max_steps=args.steps)
+    resume(args.run_dir, max_steps=args.steps, settings=args.settings)
     return _finished(args.run_dir)
 
 

@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from layered.checkpoint import previous, write_atomically
 
@@ -35,6 +36,7 @@ class RunInfo:
     max_steps: int | None
     plugins: tuple[str, ...] = ()
     group: tuple[int, ...] = ()  # the seeds trained together in one process with this one (layered.group)
+    changes: tuple[dict[str, Any], ...] = ()  # settings changed on resuming (`layered resume --set`), in order
 
 
 def steps_option(max_steps: int | None) -> str:
@@ -160,9 +162,18 @@ def read_run_info(run_dir: Path) -> RunInfo:
         raise RunDirError(f"{run_dir} is not a run directory (no recipe.toml and run.json){hint}")
     try:
         data = json.loads(path.read_text())
-        return RunInfo(str(data["label"]), data["max_steps"], tuple(data["plugins"]), tuple(data.get("group", ())))
+        return RunInfo(str(data["label"]), data["max_steps"], tuple(data["plugins"]), tuple(data.get("group", ())),
+                       tuple(data.get("changes", ())))
     except (ValueError, KeyError, TypeError) as e:
         raise RunDirError(f"{path} is damaged ({e.__class__.__name__}: {e})") from None
+
+
+def record_change(run_dir: Path, recipe_text: str, change: dict[str, Any]) -> None:
+    """Make `recipe_text` the run's recipe and add `change` (where and what was changed) to run.json."""
+    data = json.loads((run_dir / "run.json").read_text())
+    data["changes"] = [*data.get("changes", []), change]
+    write_atomically(run_dir / "recipe.toml", recipe_text)
+    write_atomically(run_dir / "run.json", json.dumps(data, indent=2))
 
 
 def run_plugins(run_dir: Path) -> list[str]:

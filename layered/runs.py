@@ -4,13 +4,16 @@ and the results once every phase is done."""
 
 from __future__ import annotations
 
+import re
 import sys
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import tomli_w
 
+from layered.checkpoint import CheckpointError
 from layered.events import EventLog
 from layered.events import available as events_available
 from layered.interrupt import StopRequest
@@ -26,11 +29,16 @@ from layered.rundir import (
     has_progress,
     prepare_run_dir,
     read_run_info,
+    record_change,
     steps_option,
     writing,
 )
-from layered.runstate import LoopState, load_state
-from layered.trainer import Training, phase_budget, phases_of, train_phases
+from layered.runstate import LoopState, load_state, recipe_differences, recipe_digest
+from layered.trainer import Diverged, Training, phase_budget, phases_of, train_phases
+
+
+CHANGEABLE = re.compile(r"layers\[\d+\]\.(learner\.(?!kind$)\w+|action_penalty|updates)$")
+"""The resolved recipe's keys a resumed run may change (`layered resume --set`)."""
 
 
 def warmup_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
@@ -48,9 +56,17 @@ def warmup_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class Change:
+    """Settings changed on resuming a run: the recipe its checkpoint was made with, and the `key=value`s."""
+
+    before: Recipe
+    settings: tuple[str, ...]
+
+
 def train(
     recipe: Recipe, out_dir: str | Path, max_steps: int | None = None, progress: bool = True,
-    label: str | None = None, resume: bool = False, plugins: Sequence[str] = (),
+    label: str | None = None, resume: bool = False, plugins: Sequence[str] = (), change: Change | None = None,
 ) -> list[dict[str, Any]]:
     """Train every phase of `recipe`, writing the run directory; `max_steps` caps each phase.
 
@@ -58,7 +74,8 @@ def train(
     different seeds share it. It defaults to the run directory's name. With `resume`, a run
     directory holding a stopped run continues from its last checkpoint (an empty one starts);
     without, a directory holding a run is refused. `plugins` (see layered.plugins) are recorded
-    so that evaluating the run imports them again. Returns the results row of each phase, as in
+    so that evaluating the run imports them again. `change` (with `resume`): `recipe` is the run's own
+    with some settings changed, recorded in run.json at the step it continues from. Returns the results row of each phase, as in
     results.json. Raises Stopped when SIGINT or SIGTERM stopped it, after a final checkpoint.
     """
     out = Path(out_dir)
@@ -77,16 +94,33 @@ def train(
     if not resume:
         check_new_run_dir(out)  # before the lock creates the directory
     with writing(out):
-        return _train_in(out, recipe, learners, info, resume, progress)
+        return _train_in(out, recipe, learners, info, resume, progress, change)
 
 
 def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: RunInfo, resume: bool,
-              progress: bool = True) -> list[dict[str, Any]]:
+              progress: bool = True, change: Change | None = None) -> list[dict[str, Any]]:
     """`train`, from the run directory on, while this process holds its lock."""
     max_steps = info.max_steps
     prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # so that a run killed early resumes
     checkpoint = out / "checkpoints" / "run.pt"
-    state = load_state(checkpoint, learners, resolved(recipe), max_steps)
+    changes = read_run_info(out).changes if resume else ()
+    changed_from = recipe_digest(resolved(change.before)) if change else changes[-1]["from"] if changes else None
+    try:
+        state = load_state(checkpoint, learners, resolved(recipe), max_steps, changed_from)
+    except CheckpointError:
+        raise
+    except (RuntimeError, KeyError, ValueError) as e:  # a changed setting the networks cannot take
+        if change is None:
+            raise
+        raise RunDirError(f"{out}: the checkpoint does not fit the changed settings "
+                          f"({str(e).strip().splitlines()[0][:200]})") from None
+    if change is not None:
+        if state is None:
+            raise RunDirError(f"{out}: the run has no checkpoint to continue from with other settings; train it "
+                              "again with --force and the settings in the recipe or on the command line")
+        record_change(out, tomli_w.dumps(resolved(recipe)), {
+            "phase": state.phase, "step": state.step, "set": list(change.settings), "from": changed_from,
+            "differences": recipe_differences(resolved(change.before), resolved(recipe))})
     resumed_at = None if state is None else (state.phase, state.step)
     run = Training(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
               CsvLog(out / "episodes.csv", EPISODE_FIELDS), checkpoint, max_steps, progress, StopRequest(),
@@ -101,6 +135,8 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
         run.episodes.truncate(state.log_sizes["episodes"])
     try:
         train_phases(run, state, out)
+    except Diverged as e:
+        raise Diverged(f"{e}; {_way_on(out, recipe, e.layer)}", e.layer) from None
     finally:
         if run.events is not None:
             run.events.close()
@@ -108,8 +144,23 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
     return state.rows
 
 
-def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = True) -> list[dict[str, Any]]:
-    """Continue a stopped run from its last checkpoint, with the recipe and settings it was started with.
+def _way_on(out: Path, recipe: Recipe, layer: str | None) -> str:
+    """What to do after a divergence: from the last checkpoint if there is one, with a lower learning rate."""
+    if layer is None:
+        return "check the environment"
+    config = recipe.learner_config(recipe.layer_names().index(layer))
+    lower = f"layers.{layer}.learner.lr={getattr(config, 'lr', 3e-4) / 3:.3g}"
+    if has_progress(out):
+        return f"the last checkpoint is intact: continue from it with a lower learning rate, `layered resume {out} " \
+               f"--set {lower}`"
+    return f"no checkpoint was taken before it: train again with --force and a lower learning rate ({lower})"
+
+
+def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = True,
+           settings: Sequence[str] = ()) -> list[dict[str, Any]]:
+    """Continue a stopped run from its last checkpoint, with the recipe and settings it was started with,
+    or with the `key=value` `settings` changed (a layer's learner settings but its kind, action
+    penalty and updates per decision: the way on after a divergence), recorded in run.json.
 
     `max_steps`, when given, must be the one the run was started with.
     """
@@ -122,4 +173,15 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
         raise RunDirError(f"{run_dir}: the run was started with {steps_option(info.max_steps)}, not "
                           f"{steps_option(max_steps)}")
     recipe = load_recipe(run_dir / "recipe.toml")
-    return train(recipe, run_dir, info.max_steps, progress, info.label, resume=True, plugins=info.plugins)
+    change = None
+    if settings:
+        change, recipe = Change(recipe, tuple(settings)), load_recipe(run_dir / "recipe.toml", settings)
+        differences = recipe_differences(resolved(change.before), resolved(recipe))
+        if not differences:
+            raise RunDirError(f"{run_dir}: --set {' '.join(settings)} changes nothing")
+        fixed = [d.split(":")[0] for d in differences if not CHANGEABLE.match(d.split(":")[0])]
+        if fixed:
+            raise RunDirError(f"{run_dir}: a resumed run may change a layer's learner settings (not its kind), "
+                              f"action_penalty and updates, not {', '.join(fixed)}")
+    return train(recipe, run_dir, info.max_steps, progress, info.label, resume=True, plugins=info.plugins,
+                 change=change)

@@ -124,15 +124,17 @@ def save_state(path: Path, state: LoopState, learners: dict[str, Learner], resol
 
 
 def load_state(path: Path, learners: dict[str, Learner], resolved_recipe: dict[str, Any],
-             max_steps: int | None) -> LoopState | None:
+             max_steps: int | None, changed_from: str | None = None) -> LoopState | None:
     """Restore the newest usable checkpoint into `learners`; its loop state, or None if there is none.
 
-    Refuses, naming the difference, a checkpoint made with another recipe or another `--steps`.
+    Refuses, naming the difference, a checkpoint made with another recipe or another `--steps`; one
+    made with the recipe whose digest is `changed_from` (the run's settings were changed since, and
+    `learners` are built with the changed ones) is taken.
     """
     saved = load_latest(path, "run")
     if saved is None:
         return None
-    if saved["recipe_digest"] != recipe_digest(resolved_recipe):
+    if saved["recipe_digest"] not in (recipe_digest(resolved_recipe), changed_from):
         changes = recipe_differences(json.loads(saved["recipe"]), resolved_recipe)
         raise CheckpointError(f"{path.parent.parent}: the recipe differs from the one the run was started with "
                               f"({'; '.join(changes[:3])}{'; ...' if len(changes) > 3 else ''})")

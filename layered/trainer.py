@@ -34,7 +34,12 @@ FRESH_MEASURES = ("return_mean", "return_std", "repetition", "decisions", "jerk"
 
 
 class Diverged(RuntimeError):
-    """A non-finite loss, action or observation; the run's last checkpoint is left as it was."""
+    """A non-finite loss, action or observation; the run's last checkpoint is left as it was. `layer`
+    names the layer that met it (None: the environment's observation)."""
+
+    def __init__(self, message: str, layer: str | None = None) -> None:
+        super().__init__(message)
+        self.layer = layer
 
 
 @dataclass(frozen=True)
@@ -261,8 +266,7 @@ def _read_back_losses(state: LoopState, learners: dict[str, Learner]) -> None:
 
 def _check_finite(values: np.ndarray, what: str, layer: str, state: LoopState) -> None:
     if not np.all(np.isfinite(values)):
-        raise Diverged(f"layer {layer!r} met a non-finite {what} in phase {state.phase} at step {state.step}; "
-                       "the last checkpoint is intact (lower the learning rate, or check the environment)")
+        raise Diverged(f"layer {layer!r} met a non-finite {what} in phase {state.phase} at step {state.step}", layer)
 
 
 def curve_auc(recipe: Recipe, curve: list[tuple[int, Evaluation]]) -> float | None:

@@ -10,13 +10,14 @@ import time
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import assert_same_run, stop_at_episode_end, train_until_stopped
 
 from layered import load_recipe
-from layered.checkpoint import CheckpointError, previous
+from layered.checkpoint import CheckpointError, load_checkpoint, previous
 from layered.interrupt import Stopped
-from layered.rundir import RunDirError
+from layered.rundir import RunDirError, read_run_info
 from layered.runs import resume, train
 from layered.trainer import Diverged
 
@@ -105,11 +106,32 @@ def test_divergence_stops_naming_layer_phase_and_step_and_keeps_the_last_checkpo
     monkeypatch.setattr(TD3, "update", update)
     # The 400th update is at step 325 of phase 1; losses are read back at the next evaluation or
     # checkpoint, here the episode end at step 400, before anything of that checkpoint is written.
-    with pytest.raises(Diverged, match="layer 'fast' met a non-finite loss in phase 1 at step 400"):
+    with pytest.raises(Diverged, match="layer 'fast' met a non-finite loss in phase 1 at step 400") as diverged:
         train(recipe, tmp_path, max_steps=700, progress=False)
+    way_on = f"the last checkpoint is intact: continue from it with a lower learning rate, `layered resume {tmp_path} " \
+             "--set layers.fast.learner.lr=0.0001`"
+    assert str(diverged.value).endswith(way_on)
     monkeypatch.undo()
-    resume(tmp_path, progress=False)  # from the last checkpoint before the divergence
-    assert (tmp_path / "results.json").exists()
+    for settings, why in ((["env.id=Hopper-v5"], "not env.id"), (["layers.fast.learner.hidden=[8]"], "does not fit"),
+                          (["layers.fast.learner.lr=3e-4"], "changes nothing")):
+        with pytest.raises(RunDirError, match=why):
+            resume(tmp_path, progress=False, settings=settings)
+    resume(tmp_path, progress=False, settings=["layers.fast.learner.lr=1e-4"])  # from the last checkpoint
+    info = read_run_info(tmp_path)
+    assert [(c["phase"], c["step"], c["set"], c["differences"]) for c in info.changes] == [
+        (1, 200, ["layers.fast.learner.lr=1e-4"], ["layers[1].learner.lr: 0.0003 -> 0.0001"])]
+    assert load_recipe(tmp_path / "recipe.toml").learner_config(1).lr == 1e-4
+    fast = load_checkpoint(tmp_path / "checkpoints" / "fast.pt", "fast")
+    assert {g["lr"] for g in fast["actor_opt"]["param_groups"] + fast["critic_opt"]["param_groups"]} == {1e-4}
+
+
+def test_a_divergence_before_the_first_checkpoint_says_to_train_again(tmp_path, monkeypatch):
+    from layered.learners.td3 import TD3
+
+    monkeypatch.setattr(TD3, "act", lambda self, obs, explore: np.full(self.action_space.shape, np.nan, np.float32))
+    with pytest.raises(Diverged, match="no checkpoint was taken before it: train again with --force and a lower "
+                       r"learning rate \(layers\.slow\.learner\.lr=0\.0001\)"):
+        train(load_recipe(PENDULUM / "tla-c.toml", [*TINY, "train.warmup=0"]), tmp_path, max_steps=700, progress=False)
 
 
 def layered(*args, **kwargs):

@@ -14,7 +14,7 @@ from torch import nn
 
 from layered.buffer import ReplayBuffer, Transition
 from layered.learners.base import Learner, Losses
-from layered.learners.td3 import TD3, TD3Config, adam, linear_macs, mlp
+from layered.learners.td3 import TD3, TD3Config, adam, linear_macs, load_adam, mlp
 from layered.outputs import OutputLayout
 
 
@@ -69,7 +69,7 @@ class ChoiceQ:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.net.load_state_dict(state["net"])
-        self.opt.load_state_dict(state["opt"])
+        load_adam(self.opt, state["opt"], self.td3.config.lr)
 
 
 class ActionAndChoice(nn.Module):

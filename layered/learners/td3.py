@@ -152,6 +152,14 @@ def linear_macs(module: nn.Module) -> int:
     return sum(m.in_features * m.out_features for m in module.modules() if isinstance(m, nn.Linear))
 
 
+def load_adam(optimizer: torch.optim.Optimizer, state: dict[str, Any], lr: float) -> None:
+    """Restore an optimiser's state, at the learning rate of the configuration rather than the saved one,
+    so that a run resumed with a changed `lr` (`layered resume --set`) takes it."""
+    optimizer.load_state_dict(state)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+
+
 def adam(params: Any, lr: float) -> torch.optim.Adam:
     """Adam, fused where this torch build supports it on CPU."""
     try:
@@ -313,7 +321,7 @@ class TD3(Learner):
         self.critic.load_state_dict(state["critic"])
         self.actor_target.load_state_dict(state["actor_target"])
         self.critic_target.load_state_dict(state["critic_target"])
-        self.actor_opt.load_state_dict(state["actor_opt"])
-        self.critic_opt.load_state_dict(state["critic_opt"])
+        load_adam(self.actor_opt, state["actor_opt"], self.config.lr)
+        load_adam(self.critic_opt, state["critic_opt"], self.config.lr)
         self.updates = int(state["updates"])
         self.torch_rng.set_state(state["torch_rng"])
