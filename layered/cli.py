@@ -378,7 +378,10 @@ def _sweep(args: argparse.Namespace) -> int:
         except RuntimeError as e:
             return _fail(str(e))
     else:
-        outcomes = run_local(jobs, args.jobs)
+        outcomes, stop = run_local(jobs, args.jobs)
+        if stop.received:
+            print(f"layered: {stop.summary()}", file=sys.stderr)
+            return EXIT_SIGNAL[stop.received[0]]
     failed = [o for o in outcomes if o.status == "failed"]
     print(f"{len(outcomes) - len(failed)} of {len(jobs)} runs finished in {args.out}; "
           f"tables and figures: layered report {args.out}")

@@ -10,19 +10,21 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
+import signal
 import sys
 import threading
 import time
 import tomllib
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import tomli_w
 from tqdm import tqdm
 
+from layered.interrupt import SIGNAL_NAMES
 from layered.plugins import load_plugins
 from layered.recipe import RecipeError, load_recipe, resolved
 from layered.rundir import read_run_info, steps_option
@@ -44,7 +46,8 @@ class Outcome:
     """What became of a job."""
 
     job: Job
-    status: str  # "done", "skipped" (already finished), "stopped" (by a signal, checkpointed) or "failed"
+    status: str  # "done", "skipped" (already finished), "stopped" (by a signal), "not started" (the sweep stopped),
+    # or "failed"
     detail: str
 
 
@@ -93,6 +96,9 @@ def _check_same_run(job: Job) -> None:
                                                        "same --steps")])
 
 
+_STOP: Any = None  # in a worker: the sweep's event, set once it is asked to stop (no new run starts)
+
+
 def run_job(job: Job) -> Outcome:
     """Train one job in this process (one torch thread), its output going to the run's train.log."""
     import torch
@@ -102,6 +108,8 @@ def run_job(job: Job) -> Outcome:
 
     if (job.out / "results.json").exists():
         return Outcome(job, "skipped", "already finished")
+    if _STOP is not None and _STOP.is_set():
+        return Outcome(job, "not started", "the sweep was stopped; the same sweep again starts it")
     torch.set_num_threads(1)
     load_plugins(job.plugins)
     job.out.mkdir(parents=True, exist_ok=True)
@@ -112,6 +120,9 @@ def run_job(job: Job) -> Outcome:
         except Stopped as e:
             print(f"stopped: {e}", file=log)
             return Outcome(job, "stopped", f"phase {e.phase}, step {e.step}; the same sweep again resumes it")
+        except KeyboardInterrupt:  # a second signal: at once, from the last checkpoint
+            print("stopped at once", file=log)
+            return Outcome(job, "stopped", "at once; the same sweep again resumes it from its last checkpoint")
         except Exception as e:  # reported per job; the sweep goes on with the others
             print(f"failed: {e.__class__.__name__}: {e}", file=log)
             return Outcome(job, "failed", f"{e.__class__.__name__}: {e} (see {job.out / 'train.log'})")
@@ -119,33 +130,74 @@ def run_job(job: Job) -> Outcome:
     return Outcome(job, "done", f"return {final['return_mean']:.1f}, repetition {final['repetition']:.1%}")
 
 
-def run_local(jobs: Sequence[Job], workers: int) -> list[Outcome]:
-    """Run the jobs in `workers` processes, showing progress over jobs."""
+@dataclass
+class SweepStop:
+    """The signals the sweep process received. The first sets the event that keeps workers from
+    starting a run and asks each running one (by SIGTERM) to stop at its next episode end with a
+    checkpoint; a second asks them again, which stops them at once."""
+
+    event: Any
+    received: list[str] = field(default_factory=list)
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        name = SIGNAL_NAMES.get(signal.Signals(signum), str(signum))
+        self.received.append(name)
+        self.event.set()
+        for child in multiprocessing.active_children():
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(child.pid or 0, signal.SIGTERM)
+        if len(self.received) == 1:
+            print(f"\nlayered: {name}: no new run starts, and the running ones stop at their next episode end with "
+                  "a checkpoint (signal again to stop them at once)", file=sys.stderr, flush=True)
+
+    def summary(self) -> str | None:
+        """One line on what the stop did, or None when no signal came."""
+        if not self.received:
+            return None
+        how = "at their next episode end" if len(self.received) == 1 else "at once, from their last checkpoints"
+        return f"sweep stopped by {self.received[0]}: its running runs stopped {how}; the same command resumes them"
+
+
+def run_local(jobs: Sequence[Job], workers: int) -> tuple[list[Outcome], SweepStop]:
+    """Run the jobs in `workers` processes, showing progress over jobs; the outcomes, and the signals
+    that stopped the sweep (if any).
+
+    Workers run in sessions of their own, so that a Ctrl-C at the terminal reaches the sweep alone,
+    which tells them what to do (see SweepStop).
+    """
     outcomes = []
     bar = tqdm(total=len(jobs), desc="sweep", unit="run", file=sys.stderr)
     context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state forked
-    with ProcessPoolExecutor(max_workers=workers, mp_context=context,
-                             initializer=_init_worker, initargs=(os.getpid(),)) as pool:
-        futures = [pool.submit(run_job, job) for job in jobs]
-        try:
+    stop = SweepStop(context.Event())
+    before = {s: signal.signal(s, stop) for s in SIGNAL_NAMES}
+    try:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=context,
+                                 initializer=_init_worker, initargs=(os.getpid(), stop.event)) as pool:
+            futures = [pool.submit(run_job, job) for job in jobs]
             for future in as_completed(futures):
                 outcome = future.result()
                 outcomes.append(outcome)
                 bar.update()
-                bar.write(f"{outcome.status:>7}  {outcome.job.out}: {outcome.detail}")
-        except KeyboardInterrupt:  # the workers got the signal too: let them checkpoint, start no more
-            pool.shutdown(wait=True, cancel_futures=True)
-            raise
-    bar.close()
-    return outcomes
+                bar.write(f"{outcome.status:>11}  {outcome.job.out}: {outcome.detail}")
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+        bar.close()
+    return outcomes, stop
 
 
-def _init_worker(sweep_pid: int) -> None:
-    """One torch thread per worker; and the worker ends when the sweep process is gone.
+def _init_worker(sweep_pid: int, stop: Any) -> None:
+    """One torch thread per worker, in a session of its own; and the worker ends when the sweep process
+    is gone.
 
     Without the watch, killing the sweep (not its process group) would leave workers training
     on in the background, writing into run directories nobody is waiting for.
     """
+    global _STOP
+    _STOP = stop
+    os.setsid()
+    for s in SIGNAL_NAMES:  # between runs, the sweep's signals are for runs that are not started: nothing to stop
+        signal.signal(s, signal.SIG_IGN)
     os.environ["OMP_NUM_THREADS"] = "1"
     threading.Thread(target=_exit_when_orphaned, args=(sweep_pid,), daemon=True).start()
 

@@ -1,5 +1,6 @@
 """Sweeps: every (recipe, seed) pair runs once in its own directory; finished runs are skipped."""
 
+import signal
 import subprocess
 import sys
 import time
@@ -124,3 +125,34 @@ def test_sweep_workers_end_when_the_sweep_process_is_killed(tmp_path):
     while _alive(worker) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not _alive(worker)
+
+
+def _started_sweep(out, jobs=2):
+    """A sweep of 4 runs on 2 workers, once both workers are training (each has a checkpoint)."""
+    command = [sys.executable, "-m", "layered.cli", "sweep", PENDULUM / "td3.toml", PENDULUM / "tla-o.toml", *TINY,
+               "eval.fresh_episodes=0", "--seeds", 2, "--jobs", jobs, "--steps", 3000, "--out", out]
+    proc = subprocess.Popen(list(map(str, command)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while len(list(out.rglob("run.pt"))) < jobs and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    assert len(list(out.rglob("run.pt"))) >= jobs, "the workers never checkpointed"
+    return proc
+
+
+@pytest.mark.parametrize("signals", [1, 2])
+def test_a_signal_to_the_sweep_alone_starts_no_new_run_and_stops_the_running_ones(tmp_path, signals):
+    out = tmp_path / "sw"
+    proc = _started_sweep(out)
+    for _ in range(signals):
+        proc.send_signal(signal.SIGINT)  # the sweep process only: its workers are in sessions of their own
+        time.sleep(0.3)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, stderr
+    lines = [line for line in stderr.splitlines() if line.startswith("layered:")]
+    how = "at their next episode end" if signals == 1 else "at once, from their last checkpoints"
+    assert len(lines) == 2 and "no new run starts" in lines[0] and how in lines[1], stderr
+    assert stderr.count("no new run starts") == 1 and stdout.count("not started") == 2
+    assert not list(out.rglob("results.json")) and len(list(out.glob("*/*/seed*"))) == 2
+    again = sweep(PENDULUM / "td3.toml", PENDULUM / "tla-o.toml", *TINY, "eval.fresh_episodes=0", "--seeds", 2,
+                  "--jobs", 2, "--steps", 300, "--out", out)
+    assert again.returncode == 2 and "--steps 3000, not --steps 300" in again.stderr  # resumed only as it was made
