@@ -148,7 +148,8 @@ def _parser() -> argparse.ArgumentParser:
         "sweep", help="train every recipe with several seeds, in parallel processes",
         usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--out DIR] [--steps N] "
         "[--device {cpu,cuda,auto}] [--backend {local,ray}] [--address ADDR] [--plugin FILE.py|MODULE]",
-        epilog="finished runs are skipped and stopped ones resume; then: layered report DIR",
+        epilog="key=a,b,c trains a setup per value (several such keys: every combination), each in its own "
+        "directory; finished runs are skipped and stopped ones resume; then: layered report DIR",
     )
     sw.add_argument("recipes", nargs="+", metavar="RECIPE", help="recipe files (and key=value overrides)")
     sw.add_argument("--seeds", type=_positive, default=3, help="seeds 0..N-1 (default 3)")

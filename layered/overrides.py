@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import tomllib
+from collections.abc import Sequence
 from typing import Any
 
 from layered.schema import RecipeError, key_path
@@ -55,3 +56,37 @@ def _list_index(items: list[Any], part: str | int, override: str) -> int:
         if isinstance(item, dict) and item.get("name") == part:
             return i
     raise RecipeError("command line", [(override, f"no entry named {part!r}")])
+
+
+def split_values(text: str) -> list[str]:
+    """The values of `a,b,c`: split at the commas outside brackets, braces and quotes (`[32, 32]` is one)."""
+    values, depth, quote, start = [], 0, "", 0
+    for i, char in enumerate(text):
+        if quote:
+            quote = "" if char == quote else quote
+        elif char in "\"'":
+            quote = char
+        elif char in "[{":
+            depth += 1
+        elif char in "]}":
+            depth -= 1
+        elif char == "," and depth == 0:
+            values.append(text[start:i])
+            start = i + 1
+    return [*values, text[start:]]
+
+
+def grid(overrides: Sequence[str]) -> list[tuple[list[str], list[str]]]:
+    """The setups that overrides span: each `key=a,b,c` is an axis of values, and every combination of
+    one value per axis is a setup (the product, the first axis slowest). Per setup: all its overrides,
+    and those of the axes (what names the setup; none when no key has several values)."""
+    axes = []
+    for override in overrides:
+        key, sep, text = override.partition("=")
+        values = split_values(text) if sep else [text]
+        axes.append([f"{key}={value.strip()}" if sep else override for value in values])
+    setups: list[tuple[list[str], list[str]]] = [([], [])]
+    for options in axes:
+        varies = len(options) > 1
+        setups = [(chosen + [option], named + [option] * varies) for chosen, named in setups for option in options]
+    return setups

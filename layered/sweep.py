@@ -25,6 +25,7 @@ import tomli_w
 from tqdm import tqdm
 
 from layered.interrupt import SIGNAL_NAMES
+from layered.overrides import grid
 from layered.plugins import load_plugins
 from layered.recipe import RecipeError, load_recipe, resolved
 from layered.rundir import read_run_info, steps_option
@@ -55,19 +56,25 @@ def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequen
          max_steps: int | None = None, plugins: Sequence[str] = ()) -> list[Job]:
     """The jobs of a sweep; every recipe is validated first, so a bad one stops it before any run.
 
-    Run directories are `out/<recipe folder>/<recipe name>/seed<k>`, with as many more of each
-    recipe's parent folders as it takes to tell recipes of the same folder and file name apart.
-    Jobs are ordered seed by seed, so a sweep cut short still has every recipe for its first seeds.
+    An override `key=a,b,c` gives a setup per value (several such keys: per combination, see
+    `overrides.grid`). Run directories are `out/<recipe folder>/<recipe name>[/<key=value,...>]/seed<k>`,
+    with as many more of each recipe's parent folders as it takes to tell recipes of the same folder
+    and file name apart; a setup's label is the recipe's, then its `key=value`s. Jobs are ordered seed
+    by seed, so a sweep cut short still has every setup for its first seeds.
     """
     paths = list(dict.fromkeys(Path(source).resolve() for source in recipes))  # a recipe named twice runs once
     labels = recipe_labels(paths)
+    setups = grid(overrides)
     jobs = []
     for seed in range(seeds):
         for path in paths:
-            recipe = load_recipe(path, [*overrides, f"train.seed={seed}"])
-            job = Job(resolved(recipe), out / labels[path] / f"seed{seed}", labels[path], max_steps, tuple(plugins))
-            _check_same_run(job)
-            jobs.append(job)
+            for chosen, named in setups:
+                recipe = load_recipe(path, [*chosen, f"train.seed={seed}"])
+                folder = out / labels[path] / ",".join(named).replace("/", "_") if named else out / labels[path]
+                label = " ".join([labels[path], *named])
+                job = Job(resolved(recipe), folder / f"seed{seed}", label, max_steps, tuple(plugins))
+                _check_same_run(job)
+                jobs.append(job)
     return jobs
 
 

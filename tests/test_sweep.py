@@ -156,3 +156,26 @@ def test_a_signal_to_the_sweep_alone_starts_no_new_run_and_stops_the_running_one
     again = sweep(PENDULUM / "td3.toml", PENDULUM / "tla-o.toml", *TINY, "eval.fresh_episodes=0", "--seeds", 2,
                   "--jobs", 2, "--steps", 300, "--out", out)
     assert again.returncode == 2 and "--steps 3000, not --steps 300" in again.stderr  # resumed only as it was made
+
+
+def test_comma_separated_values_make_a_grid_of_setups_each_reported_on_its_own(tmp_path):
+    from layered.overrides import grid, split_values
+    from layered.sweep import plan
+
+    assert split_values('[32, 32],"a,b",{x = 1, y = 2},3') == ["[32, 32]", '"a,b"', "{x = 1, y = 2}", "3"]
+    assert [named for _, named in grid(["a=1,2", "b=[1, 2]", "c=x,y"])] == [
+        ["a=1", "c=x"], ["a=1", "c=y"], ["a=2", "c=x"], ["a=2", "c=y"]]
+    out = tmp_path / "grid"
+    jobs = plan([PENDULUM / "tla-c.toml"], 2, out, [*TINY, "layers.fast.action_penalty=0.5,2"], 300)
+    assert sorted(str(job.out.relative_to(out)) for job in jobs) == [
+        f"pendulum/tla-c/layers.fast.action_penalty={v}/seed{k}" for v in ("0.5", "2") for k in (0, 1)]
+    assert {job.recipe["layers"][1]["action_penalty"] for job in jobs} == {0.5, 2.0}
+    proc = sweep(PENDULUM / "tla-c.toml", *TINY, "layers.fast.action_penalty=0.5,2", "--seeds", 1, "--jobs", 2,
+                 "--steps", 150, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    report = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(out), "--out", str(tmp_path / "r")],
+                            capture_output=True, text=True)
+    assert report.returncode == 0, report.stderr
+    summary = (tmp_path / "r" / "summary.csv").read_text().splitlines()
+    assert len(summary) == 3 and {line.split(",")[1] for line in summary[1:]} == {
+        "pendulum/tla-c layers.fast.action_penalty=0.5", "pendulum/tla-c layers.fast.action_penalty=2"}
