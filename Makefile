@@ -6,13 +6,30 @@ BIN    := $(VENV)/bin
 RECIPE ?= recipes/pendulum/tla-c.toml
 OUT    ?= runs/$(basename $(notdir $(RECIPE)))-$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: run test lint bench
+.PHONY: run test lint bench wheel-check learning-check
 
 run: $(VENV)/.installed
 	$(BIN)/layered train $(RECIPE) --out $(OUT)
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest -q
+
+# Pendulum TD3 and TLA-C at the recipes' budgets, 2 seeds, against the paper's numbers.
+learning-check: $(VENV)/.installed
+	$(BIN)/python -m pytest -q -m learning tests/test_learning.py
+
+# The wheel, installed with its extras into a clean environment, trains a shipped recipe (named, not a
+# path) and exports it, outside the checkout.
+wheel-check: $(VENV)/.installed
+	rm -rf dist .wheel-venv
+	$(BIN)/python -m pip install --quiet build
+	$(BIN)/python -m build --wheel --outdir dist .
+	$(PYTHON) -m venv .wheel-venv
+	.wheel-venv/bin/python -m pip install --quiet torch==2.13.0
+	.wheel-venv/bin/python -m pip install --quiet "$$(ls dist/*.whl)[onnx,tensorboard]"
+	cd "$$(mktemp -d)" && $(CURDIR)/.wheel-venv/bin/layered train pendulum/tla-c --steps 300 --out run \
+		train.warmup=100 eval.every=150 eval.episodes=1 eval.fresh_episodes=1 && \
+		$(CURDIR)/.wheel-venv/bin/layered export run --format onnx
 
 lint: $(VENV)/.installed
 	$(BIN)/ruff check layered envs tests benchmarks

@@ -18,7 +18,7 @@ from layered.envs import RenderingUnavailable
 from layered.export import ExportError
 from layered.interrupt import Stopped
 from layered.plugins import PluginError, load_plugins
-from layered.recipe import RecipeError, load_recipe
+from layered.recipe import RecipeError, load_recipe, recipe_path
 from layered.report import plot_episode, results_table
 from layered.run_evals import DEFAULT_SWEEP
 from layered.rundir import RunDirError
@@ -92,7 +92,7 @@ def _parser() -> argparse.ArgumentParser:
         "[--seeds N|A-B|A,B,C] [--tensorboard] [--device {cpu,cuda,auto}] [--plugin FILE.py|MODULE]",
         epilog="key=value pairs override recipe values, e.g. train.warmup=500 layers.fast.period=2",
     )
-    tr.add_argument("recipe", help="recipe TOML file")
+    tr.add_argument("recipe", help="recipe TOML file, or a shipped recipe by name (pendulum/tla-c)")
     tr.add_argument("--out", type=Path, help="run directory (default runs/<recipe>-s<seed>-<time>)")
     tr.add_argument("--seed", type=int, help="same as train.seed=S")
     tr.add_argument("--seeds", type=_seeds, help="train several seeds as one group in this process: N (0..N-1), "
@@ -102,7 +102,7 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--force", action="store_true", help="start over in an --out that holds a stopped or finished run")
     tr.add_argument("--device", choices=["cpu", "cuda", "auto"], help="where the learners run (learner.device)")
     tr.add_argument("--tensorboard", action="store_true",
-                    help="also write TensorBoard event files (as log.tensorboard=true; extra layered[tensorboard])")
+                    help="also write TensorBoard event files (as log.tensorboard=true; extra layered-control[tensorboard])")
     _plugin_option(tr)
     rs = sub.add_parser("resume", help="continue a stopped run from its last checkpoint",
                         epilog="the run continues with the recipe and --steps it was started with, but for the settings --set "
@@ -136,7 +136,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     ex.add_argument("run_dir", type=Path, help="run directory of a trained run")
     ex.add_argument("--format", choices=["torchscript", "onnx"], default="torchscript",
-                    help="policy files for torch alone (default) or for onnxruntime (extra layered[onnx])")
+                    help="policy files for torch alone (default) or for onnxruntime (extra layered-control[onnx])")
     ex.add_argument("--out", type=Path, help="export directory (default RUN_DIR/export-FORMAT)")
     ex.add_argument("--weights", choices=["final", "best"],
                     help="each phase's final or best weights (default: the recipe's train.select)")
@@ -159,7 +159,7 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--device", choices=["cpu", "cuda", "auto"],
                     help="where the learners run (learner.device); with cuda, the --jobs processes share the GPU")
     sw.add_argument("--backend", choices=["local", "ray"], default="local",
-                    help="local processes (default) or Ray tasks (needs the extra layered[ray])")
+                    help="local processes (default) or Ray tasks (needs the extra layered-control[ray])")
     sw.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
     _plugin_option(sw)
     rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
@@ -188,13 +188,13 @@ def _train(args: argparse.Namespace) -> int:
     if args.seeds is not None:
         return _train_group(args, overrides, plugins)
     recipe = load_recipe(args.recipe, overrides)
-    out = args.out or Path("runs") / f"{Path(args.recipe).stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out = args.out or Path("runs") / f"{recipe_path(args.recipe).stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
     args.out = out
     if args.force and out.is_dir():
         clear_run_dir(out)
     check_new_run_dir(out)
     print(f"training {args.recipe} -> {out}", file=sys.stderr)
-    source = Path(args.recipe)
+    source = recipe_path(args.recipe)
     train(recipe, out, max_steps=args.steps, label=f"{source.parent.name}/{source.stem}", plugins=plugins)
     return _finished(out)
 
@@ -207,14 +207,14 @@ def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[s
         return _fail("give --seed or --seeds, not both")
     recipes = group_recipes(args.recipe, args.seeds, overrides)
     check_group(recipes[0])
-    out = args.out or Path("runs") / f"{Path(args.recipe).stem}-group-{time.strftime('%Y%m%d-%H%M%S')}"
+    out = args.out or Path("runs") / f"{recipe_path(args.recipe).stem}-group-{time.strftime('%Y%m%d-%H%M%S')}"
     args.out = None  # a group is not resumed seed by seed
     outs = [out / f"seed{seed}" for seed in args.seeds]
     for run in outs:
         if args.force and run.is_dir():
             clear_run_dir(run)
         check_new_run_dir(run)
-    source = Path(args.recipe)
+    source = recipe_path(args.recipe)
     print(f"training {args.recipe}, seeds {args.seeds} as one group -> {out}", file=sys.stderr)
     results = train_group(recipes, outs, f"{source.parent.name}/{source.stem}", args.steps, plugins=plugins)
     for seed, rows in zip(args.seeds, results, strict=True):
@@ -312,7 +312,7 @@ def _export(args: argparse.Namespace) -> int:
     from layered.trainer import phases_of
 
     if args.format == "onnx" and not _installed("onnxruntime", "onnxscript"):
-        return _fail("--format onnx needs the extra layered[onnx]: pip install -e '.[onnx]' in the checkout")
+        return _fail("--format onnx needs the extra layered-control[onnx]: pip install -e '.[onnx]' in the checkout")
     load_plugins(run_plugins(args.run_dir) + args.plugin)
     warn_if_being_written(args.run_dir)
     recipe = load_recipe(args.run_dir / "recipe.toml")

@@ -32,7 +32,7 @@ def tag(key: str) -> str | None:
 
 
 def available() -> bool:
-    """Whether the optional `tensorboard` package (the extra layered[tensorboard]) is installed."""
+    """Whether the optional `tensorboard` package (the extra layered-control[tensorboard]) is installed."""
     import importlib.util
 
     return importlib.util.find_spec("tensorboard") is not None

@@ -18,15 +18,32 @@ from layered.schema import Recipe, RecipeError, describe_error, key_path
 __all__ = ["Recipe", "RecipeError", "load_recipe", "read_recipe_file", "resolved"]
 
 
+def shipped_recipes() -> Path:
+    """The folder of the recipes that ship with layered: inside the installed package, or the checkout's."""
+    inside = Path(__file__).resolve().parent / "recipes"
+    return inside if inside.is_dir() else inside.parent.parent / "recipes"
+
+
+def recipe_path(source: str | Path) -> Path:
+    """A recipe file: `source` itself where it exists, else the shipped recipe it names (`pendulum/tla-c`
+    for recipes/pendulum/tla-c.toml), else `source` (which then reads as missing)."""
+    path = Path(source)
+    if path.exists() or path.is_absolute():
+        return path
+    shipped = shipped_recipes() / path.with_suffix(".toml")
+    return shipped if shipped.is_file() else path
+
+
 def load_recipe(source: str | Path | Mapping[str, Any], overrides: Iterable[str] = ()) -> Recipe:
-    """The validated recipe from a TOML file or a table, with `key=value` overrides applied.
+    """The validated recipe from a TOML file (or the shipped recipe it names, see `recipe_path`) or a
+    table, with `key=value` overrides applied.
 
     Raises RecipeError, whose lines each name the file, the key and what was expected.
     """
     if isinstance(source, Mapping):
         label, data = "<recipe>", _deep_copy(dict(source))
     else:
-        label, data = str(source), read_recipe_file(Path(source))
+        label, data = str(source), read_recipe_file(recipe_path(source))
     overrides = list(overrides)
     for override in overrides:
         apply_override(data, override)

@@ -85,7 +85,7 @@ def train(
     if unavailable:
         raise RecipeError("recipe", unavailable)
     if recipe.log.tensorboard and not events_available():
-        raise RecipeError("recipe", [("log.tensorboard", "needs the extra layered[tensorboard]: "
+        raise RecipeError("recipe", [("log.tensorboard", "needs the extra layered-control[tensorboard]: "
                                       "pip install -e '.[tensorboard]' in the checkout")])
     info = RunInfo(label or out.name, max_steps, tuple(plugins))
     learners = build_learners(recipe)

@@ -174,7 +174,7 @@ class LogConfig(Section):
 
     tensorboard: Flag = False
     """Also write TensorBoard event files (run directory's `tensorboard/`, one run per phase): every
-    row of metrics.csv as scalars. Needs the extra `layered[tensorboard]`."""
+    row of metrics.csv as scalars. Needs the extra `layered-control[tensorboard]`."""
 
 
 class Recipe(Section):

@@ -27,7 +27,7 @@ from tqdm import tqdm
 from layered.interrupt import SIGNAL_NAMES
 from layered.overrides import grid
 from layered.plugins import load_plugins
-from layered.recipe import RecipeError, load_recipe, resolved
+from layered.recipe import RecipeError, load_recipe, recipe_path, resolved
 from layered.rundir import read_run_info, steps_option
 
 
@@ -62,7 +62,7 @@ def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequen
     and file name apart; a setup's label is the recipe's, then its `key=value`s. Jobs are ordered seed
     by seed, so a sweep cut short still has every setup for its first seeds.
     """
-    paths = list(dict.fromkeys(Path(source).resolve() for source in recipes))  # a recipe named twice runs once
+    paths = list(dict.fromkeys(recipe_path(source).resolve() for source in recipes))  # a recipe named twice runs once
     labels = recipe_labels(paths)
     setups = grid(overrides)
     jobs = []

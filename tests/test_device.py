@@ -20,7 +20,7 @@ def test_auto_is_cuda_where_there_is_one_and_cpu_elsewhere():
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
 def test_cuda_without_a_gpu_is_refused_before_anything_is_written(tmp_path):
-    recipe = load_recipe("recipes/pendulum/tla-c.toml", ["learner.device=cuda"])  # a recipe may name it
+    recipe = load_recipe("pendulum/tla-c.toml", ["learner.device=cuda"])  # a recipe may name it
     with pytest.raises(RecipeError, match=r"learner\.device: .*no CUDA GPU"):
         train(recipe, tmp_path / "run", max_steps=100, progress=False)
     assert not (tmp_path / "run").exists()
@@ -30,7 +30,7 @@ def test_a_run_trained_for_a_gpu_evaluates_on_the_cpu(tmp_path, tiny):
     """A run directory whose recipe names cuda loads its learners on the CPU, here as on a laptop."""
     from layered.learner_set import load_learners
 
-    recipe = load_recipe("recipes/pendulum/tla-c.toml", tiny)
+    recipe = load_recipe("pendulum/tla-c.toml", tiny)
     train(recipe, tmp_path, max_steps=200, progress=False)
     text = (tmp_path / "recipe.toml").read_text().replace('device = "cpu"', 'device = "cuda"')
     assert text.count('device = "cuda"') == 2  # each layer's learner table, as resolved
@@ -41,8 +41,8 @@ def test_a_run_trained_for_a_gpu_evaluates_on_the_cpu(tmp_path, tiny):
 
 
 @CUDA
-@pytest.mark.parametrize("recipe", ["recipes/pendulum/tla-c.toml", "recipes/pendulum/temporl.toml",
-                                    "recipes/pendulum/tla-joint.toml"])
+@pytest.mark.parametrize("recipe", ["pendulum/tla-c.toml", "pendulum/temporl.toml",
+                                    "pendulum/tla-joint.toml"])
 def test_cuda_learners_keep_networks_and_buffers_on_the_gpu(recipe, tiny, tmp_path):
     loaded = load_recipe(recipe, [*tiny, "learner.device=cuda"])
     for learner in build_learners(loaded).values():
@@ -54,7 +54,7 @@ def test_cuda_learners_keep_networks_and_buffers_on_the_gpu(recipe, tiny, tmp_pa
 
 @CUDA
 def test_cuda_run_resumes_to_the_same_files(tiny, tmp_path, monkeypatch):
-    recipe = load_recipe("recipes/pendulum/tla-c.toml", [*tiny, "learner.device=cuda"])
+    recipe = load_recipe("pendulum/tla-c.toml", [*tiny, "learner.device=cuda"])
     train(recipe, tmp_path / "whole", max_steps=400, progress=False)
     train_until_stopped(monkeypatch, recipe, tmp_path / "stopped", episodes=2, max_steps=400, progress=False)
     resume(tmp_path / "stopped", max_steps=400, progress=False)
@@ -63,7 +63,7 @@ def test_cuda_run_resumes_to_the_same_files(tiny, tmp_path, monkeypatch):
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
 def test_cuda_graphs_without_a_gpu_are_refused_before_anything_is_written(tmp_path):
-    recipe = load_recipe("recipes/pendulum/tla-c.toml", ["learner.device=auto", "learner.compile=cudagraphs"])
+    recipe = load_recipe("pendulum/tla-c.toml", ["learner.device=auto", "learner.compile=cudagraphs"])
     with pytest.raises(RecipeError, match=r"learner\.compile: 'cudagraphs' asked for, but .*no CUDA GPU"):
         train(recipe, tmp_path / "run", max_steps=100, progress=False)
     assert not (tmp_path / "run").exists()
@@ -72,6 +72,6 @@ def test_cuda_graphs_without_a_gpu_are_refused_before_anything_is_written(tmp_pa
 @CUDA
 @pytest.mark.parametrize("mode", ["inductor", "cudagraphs"])
 def test_compiled_cuda_learners_train(mode, tiny, tmp_path):
-    recipe = load_recipe("recipes/pendulum/tla-c.toml", [*tiny, "learner.device=cuda", f"learner.compile={mode}"])
+    recipe = load_recipe("pendulum/tla-c.toml", [*tiny, "learner.device=cuda", f"learner.compile={mode}"])
     train(recipe, tmp_path, max_steps=300, progress=False)
     assert (tmp_path / "results.json").exists()

@@ -36,7 +36,7 @@ def same_as_csv(run_dir, phase_dir, phase):
 
 
 def test_event_files_hold_every_metrics_row_per_phase(tmp_path, tiny):
-    recipe = load_recipe("recipes/pendulum/tla-c.toml", [*tiny, "log.tensorboard=true"])
+    recipe = load_recipe("pendulum/tla-c.toml", [*tiny, "log.tensorboard=true"])
     train(recipe, tmp_path, max_steps=400, progress=False)
     assert sorted(p.name for p in (tmp_path / "tensorboard").iterdir()) == ["phase-0-slow", "phase-1-fast"]
     for phase, folder in enumerate(["phase-0-slow", "phase-1-fast"]):
@@ -47,7 +47,7 @@ def test_event_files_hold_every_metrics_row_per_phase(tmp_path, tiny):
 
 
 def test_resumed_run_drops_events_written_after_its_checkpoint(tmp_path, tiny, monkeypatch):
-    recipe = load_recipe("recipes/pendulum/tla-c.toml", [*tiny, "log.tensorboard=true"])
+    recipe = load_recipe("pendulum/tla-c.toml", [*tiny, "log.tensorboard=true"])
     train_until_stopped(monkeypatch, recipe, tmp_path, episodes=1, max_steps=400, progress=False)
     # what a run killed between an evaluation and its next checkpoint leaves behind
     from torch.utils.tensorboard import SummaryWriter

@@ -18,13 +18,13 @@ from layered.trainer import phases_of
 
 SMALL = ["learner.hidden=[32, 32]"]
 STACKS = {
-    "2 layers, residual-clip with a threshold": ("recipes/pendulum/tla-c.toml", []),
-    "3 layers, residual-clip": ("recipes/research/pendulum-residual-3.toml", []),
-    "3 layers, gate over residual": ("recipes/research/pendulum-gate-over-residual-3.toml", []),
-    "jointly gated (td3-gate learner)": ("recipes/pendulum/tla-joint.toml", []),
-    "repeats (TempoRL)": ("recipes/pendulum/temporl.toml", []),
-    "real-time delays, MuJoCo": ("recipes/inverted-double-pendulum/tla-realtime.toml", []),
-    "per-dimension threshold, MuJoCo": ("recipes/hopper/tla-realtime.toml", ["combine.per_dimension=true"]),
+    "2 layers, residual-clip with a threshold": ("pendulum/tla-c.toml", []),
+    "3 layers, residual-clip": ("research/pendulum-residual-3.toml", []),
+    "3 layers, gate over residual": ("research/pendulum-gate-over-residual-3.toml", []),
+    "jointly gated (td3-gate learner)": ("pendulum/tla-joint.toml", []),
+    "repeats (TempoRL)": ("pendulum/temporl.toml", []),
+    "real-time delays, MuJoCo": ("inverted-double-pendulum/tla-realtime.toml", []),
+    "per-dimension threshold, MuJoCo": ("hopper/tla-realtime.toml", ["combine.per_dimension=true"]),
 }
 
 
@@ -44,7 +44,7 @@ def test_exported_stack_executes_the_library_actions(name, tmp_path):
 
 
 def test_onnx_export_executes_the_library_actions(tmp_path):
-    recipe, learners, active, out = exported("recipes/research/pendulum-gate-over-residual-3.toml", [], tmp_path,
+    recipe, learners, active, out = exported("research/pendulum-gate-over-residual-3.toml", [], tmp_path,
                                              "onnx")
     assert sorted(p.name for p in out.iterdir()) == [
         "fast.onnx", "layered_runtime", "mid.onnx", "slow.onnx", "stack.json"]
@@ -62,7 +62,7 @@ def test_the_runtime_carries_the_librarys_own_rules_and_they_import_nothing_of_i
 
     from layered.export import RUNTIME_MODULES
 
-    *_, out = exported("recipes/pendulum/tla-c.toml", [], tmp_path)
+    *_, out = exported("pendulum/tla-c.toml", [], tmp_path)
     allowed = set(sys.stdlib_module_names) | {"numpy", "torch", "onnxruntime"}
     for file, module in RUNTIME_MODULES.items():
         source = inspect.getsource(module)
@@ -76,7 +76,7 @@ def test_the_runtime_carries_the_librarys_own_rules_and_they_import_nothing_of_i
 
 def test_exported_directory_runs_with_torch_alone(tmp_path):
     """The runtime imports nothing of layered: a fresh interpreter without it on the path runs it."""
-    *_, out = exported("recipes/pendulum/tla-c.toml", [], tmp_path)
+    *_, out = exported("pendulum/tla-c.toml", [], tmp_path)
     script = ("import sys; sys.path.insert(0, '.'); sys.modules['layered'] = None; "
               "from layered_runtime import load_stack; import numpy as np; s = load_stack('.'); s.reset(); "
               "print([round(float(s.step(np.ones(3, np.float32))[0]), 6) for _ in range(6)], s.decided)")
@@ -116,7 +116,7 @@ def test_a_plugin_combiner_trains_evaluates_draws_its_threshold_figure_and_expor
         assert done.returncode == 0, done.stderr
         return done.stdout
 
-    cli("train", "recipes/pendulum/tla-c.toml", "combine.kind=test-halving", *tiny, "--steps", 300, "--out", run,
+    cli("train", "pendulum/tla-c.toml", "combine.kind=test-halving", *tiny, "--steps", 300, "--out", run,
         "--plugin", plugin)
     cli("eval", run, "--threshold-sweep", "0,0.5", "--episodes", 1)
     assert (run / "eval" / "threshold-sweep.png").exists()
@@ -133,7 +133,7 @@ def test_a_plugin_combiner_trains_evaluates_draws_its_threshold_figure_and_expor
 
 def test_export_command_on_a_trained_run(tmp_path, tiny, capsys):
     run = tmp_path / "run"
-    assert main(["train", "recipes/pendulum/tla-c.toml", "--out", str(run), "--steps", "300", *tiny]) == 0
+    assert main(["train", "pendulum/tla-c.toml", "--out", str(run), "--steps", "300", *tiny]) == 0
     capsys.readouterr()
     assert main(["export", str(run), "--episodes", "1"]) == 0
     printed = capsys.readouterr().out

@@ -73,7 +73,7 @@ def test_a_second_writer_is_refused_in_one_line_and_a_killed_writer_leaves_no_lo
         assert main(["resume", str(run)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 2 and f"is being written by process {holder.pid}" in err[1]  # "resuming ...", then why not
-        assert main(["train", "recipes/pendulum/td3.toml", "--out", str(run)]) == 2
+        assert main(["train", "pendulum/td3.toml", "--out", str(run)]) == 2
         assert f"is being written by process {holder.pid}" in capsys.readouterr().err
     finally:
         holder.send_signal(signal.SIGKILL)
@@ -90,7 +90,7 @@ def test_force_deletes_nothing_in_a_directory_that_holds_files_of_another_kind(t
     (run / "results.json").write_text(json.dumps({"phases": []}))
     (run / "checkpoints" / "fast.pt").write_bytes(b"weights")
     (run / "notes.txt").write_text("mine")
-    assert main(["train", "recipes/pendulum/td3.toml", "--out", str(run), "--force"]) == 2
+    assert main(["train", "pendulum/td3.toml", "--out", str(run), "--force"]) == 2
     assert "notes.txt" in capsys.readouterr().err
     assert (run / "results.json").exists() and (run / "checkpoints" / "fast.pt").exists()
     assert (run / "notes.txt").read_text() == "mine"

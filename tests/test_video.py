@@ -11,9 +11,9 @@ from layered.trainer import phases_of
 from layered.video import COLOURS, write_videos
 
 RECIPES = {  # recipe, episodes (dm_control renders in software here, 30 ms a frame over 1000 steps)
-    "classic control": ("recipes/pendulum/tla-c.toml", 2),
-    "MuJoCo": ("recipes/inverted-pendulum/tla-c.toml", 2),
-    "dm_control": ("recipes/dmc-cartpole-balance/tla-c.toml", 1),
+    "classic control": ("pendulum/tla-c.toml", 2),
+    "MuJoCo": ("inverted-pendulum/tla-c.toml", 2),
+    "dm_control": ("dmc-cartpole-balance/tla-c.toml", 1),
 }
 
 
