@@ -147,7 +147,7 @@ def _parser() -> argparse.ArgumentParser:
     sw = sub.add_parser(
         "sweep", help="train every recipe with several seeds, in parallel processes",
         usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--out DIR] [--steps N] "
-        "[--device {cpu,cuda,auto}] [--backend {local,ray}] [--address ADDR] [--plugin FILE.py|MODULE]",
+        "[--vectorize] [--device {cpu,cuda,auto}] [--backend {local,ray}] [--address ADDR] [--plugin FILE.py|MODULE]",
         epilog="key=a,b,c trains a setup per value (several such keys: every combination), each in its own "
         "directory; finished runs are skipped and stopped ones resume; then: layered report DIR",
     )
@@ -156,6 +156,8 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--jobs", type=_positive, default=os.cpu_count() or 1, help="parallel processes (default: cores)")
     sw.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep directory (default runs/sweep)")
     sw.add_argument("--steps", type=_positive, help="cap every training phase at N environment steps")
+    sw.add_argument("--vectorize", action="store_true",
+                    help="train the seeds of each setup as one group, in one process (as train --seeds)")
     sw.add_argument("--device", choices=["cpu", "cuda", "auto"],
                     help="where the learners run (learner.device); with cuda, the --jobs processes share the GPU")
     sw.add_argument("--backend", choices=["local", "ray"], default="local",
@@ -373,13 +375,20 @@ def _sweep(args: argparse.Namespace) -> int:
     recipes = [a for a in args.recipes if "=" not in a]
     plugins = load_plugins(args.plugin)
     jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins)
+    if args.vectorize:
+        from layered.group import check_group
+
+        if args.backend == "ray":
+            return _fail("--vectorize runs groups in local processes; it does not combine with --backend ray")
+        for job in {job.label: job for job in jobs}.values():
+            check_group(load_recipe(job.recipe))
     if args.backend == "ray":
         try:
             outcomes = run_ray(jobs, args.address)
         except RuntimeError as e:
             return _fail(str(e))
     else:
-        outcomes, stop = run_local(jobs, args.jobs)
+        outcomes, stop = run_local(jobs, args.jobs, args.vectorize)
         if stop.received:
             print(f"layered: {stop.summary()}", file=sys.stderr)
             return EXIT_SIGNAL[stop.received[0]]

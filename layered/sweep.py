@@ -137,6 +137,46 @@ def run_job(job: Job) -> Outcome:
     return Outcome(job, "done", f"return {final['return_mean']:.1f}, repetition {final['repetition']:.1%}")
 
 
+def run_group(jobs: Sequence[Job]) -> list[Outcome]:
+    """Train the seeds of one setup (the `jobs`, which differ in their seed alone) as one group in this
+    process (`layered.group`), its output going to the setup folder's group.log. A group keeps no
+    checkpoint: seeds left unfinished by an earlier group are trained again from the start, and a
+    signal stops the group at once."""
+    from layered.group import train_group
+    from layered.rundir import clear_run_dir
+
+    if all((job.out / "results.json").exists() for job in jobs):
+        return [Outcome(job, "skipped", "already finished") for job in jobs]
+    if _STOP is not None and _STOP.is_set():
+        return [Outcome(job, "not started", "the sweep was stopped; the same sweep again starts it") for job in jobs]
+    load_plugins(jobs[0].plugins)
+    for job in jobs:
+        if job.out.is_dir():
+            clear_run_dir(job.out)
+    log_path = jobs[0].out.parent / "group.log"
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    before = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    with log_path.open("a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
+        try:
+            results = train_group([load_recipe(job.recipe) for job in jobs], [job.out for job in jobs], jobs[0].label,
+                                  jobs[0].max_steps, progress=True, plugins=jobs[0].plugins)
+        except KeyboardInterrupt:
+            print("stopped at once", file=log)
+            return [Outcome(job, "stopped", "a group keeps no checkpoint: the same sweep trains it again")
+                    for job in jobs]
+        except Exception as e:  # reported per job; the sweep goes on with the others
+            print(f"failed: {e.__class__.__name__}: {e}", file=log)
+            return [Outcome(job, "failed", f"{e.__class__.__name__}: {e} (see {log_path})") for job in jobs]
+        finally:
+            signal.signal(signal.SIGTERM, before)
+    return [Outcome(job, "done", f"return {rows[-1]['return_mean']:.1f}, repetition {rows[-1]['repetition']:.1%}")
+            for job, rows in zip(jobs, results, strict=True)]
+
+
+def _one(job: Job) -> list[Outcome]:
+    return [run_job(job)]
+
+
 @dataclass
 class SweepStop:
     """The signals the sweep process received. The first sets the event that keeps workers from
@@ -165,9 +205,10 @@ class SweepStop:
         return f"sweep stopped by {self.received[0]}: its running runs stopped {how}; the same command resumes them"
 
 
-def run_local(jobs: Sequence[Job], workers: int) -> tuple[list[Outcome], SweepStop]:
+def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tuple[list[Outcome], SweepStop]:
     """Run the jobs in `workers` processes, showing progress over jobs; the outcomes, and the signals
-    that stopped the sweep (if any).
+    that stopped the sweep (if any). With `vectorize`, the seeds of each setup train as one group
+    (`run_group`), one group per process.
 
     Workers run in sessions of their own, so that a Ctrl-C at the terminal reaches the sweep alone,
     which tells them what to do (see SweepStop).
@@ -180,12 +221,18 @@ def run_local(jobs: Sequence[Job], workers: int) -> tuple[list[Outcome], SweepSt
     try:
         with ProcessPoolExecutor(max_workers=workers, mp_context=context,
                                  initializer=_init_worker, initargs=(os.getpid(), stop.event)) as pool:
-            futures = [pool.submit(run_job, job) for job in jobs]
+            if vectorize:
+                setups: dict[str, list[Job]] = {}
+                for job in jobs:
+                    setups.setdefault(job.label, []).append(job)
+                futures = [pool.submit(run_group, setup) for setup in setups.values()]
+            else:
+                futures = [pool.submit(_one, job) for job in jobs]
             for future in as_completed(futures):
-                outcome = future.result()
-                outcomes.append(outcome)
-                bar.update()
-                bar.write(f"{outcome.status:>11}  {outcome.job.out}: {outcome.detail}")
+                for outcome in future.result():
+                    outcomes.append(outcome)
+                    bar.update()
+                    bar.write(f"{outcome.status:>11}  {outcome.job.out}: {outcome.detail}")
     finally:
         for s, handler in before.items():
             signal.signal(s, handler)

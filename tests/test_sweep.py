@@ -179,3 +179,17 @@ def test_comma_separated_values_make_a_grid_of_setups_each_reported_on_its_own(t
     summary = (tmp_path / "r" / "summary.csv").read_text().splitlines()
     assert len(summary) == 3 and {line.split(",")[1] for line in summary[1:]} == {
         "pendulum/tla-c layers.fast.action_penalty=0.5", "pendulum/tla-c layers.fast.action_penalty=2"}
+
+
+def test_a_vectorised_sweep_trains_each_setups_seeds_as_one_group(tmp_path):
+    out = tmp_path / "vec"
+    args = (PENDULUM / "td3.toml", *TINY, "layers.fast.action_penalty=0,1", "--seeds", 2, "--jobs", 2, "--steps", 150,
+            "--vectorize", "--out", out)
+    proc = sweep(*args)
+    assert proc.returncode == 0, proc.stderr
+    runs = sorted(p.parent.relative_to(out).as_posix() for p in out.rglob("results.json"))
+    assert runs == [f"pendulum/td3/layers.fast.action_penalty={v}/seed{k}" for v in (0, 1) for k in (0, 1)]
+    assert '"group": [\n    0,\n    1\n  ]' in (out / runs[0] / "run.json").read_text()
+    assert sweep(*args).stdout.count("skipped") == 4
+    refused = sweep(PENDULUM / "temporl.toml", "--vectorize", "--out", tmp_path / "t")
+    assert refused.returncode == 2 and "'temporl' learner" in refused.stderr and not (tmp_path / "t").exists()
