@@ -102,11 +102,12 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--force", action="store_true", help="start over in an --out that holds a stopped or finished run")
     tr.add_argument("--device", choices=["cpu", "cuda", "auto"], help="where the learners run (learner.device)")
     tr.add_argument("--tensorboard", action="store_true",
-                    help="also write TensorBoard event files (as log.tensorboard=true; extra layered-control[tensorboard])")
+                    help="also write TensorBoard event files (as log.tensorboard=true; extra "
+                    "layered-control[tensorboard])")
     _plugin_option(tr)
     rs = sub.add_parser("resume", help="continue a stopped run from its last checkpoint",
-                        epilog="the run continues with the recipe and --steps it was started with, but for the settings --set "
-                        "changes")
+                        epilog="the run continues with the recipe and --steps it was started with, but for the "
+                        "settings --set changes")
     rs.add_argument("run_dir", type=Path, help="run directory of a stopped run")
     rs.add_argument("--steps", type=_positive, help="must be the --steps the run was started with (a check)")
     rs.add_argument("--threads", type=_positive, help="torch threads (use 1 per process when running several)")
@@ -190,7 +191,8 @@ def _train(args: argparse.Namespace) -> int:
     if args.seeds is not None:
         return _train_group(args, overrides, plugins)
     recipe = load_recipe(args.recipe, overrides)
-    out = args.out or Path("runs") / f"{recipe_path(args.recipe).stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+    stem = recipe_path(args.recipe).stem
+    out = args.out or Path("runs") / f"{stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
     args.out = out
     if args.force and out.is_dir():
         clear_run_dir(out)

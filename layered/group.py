@@ -350,7 +350,8 @@ def _read_back(losses: dict[str, list[GroupLosses]], rows: int, phase: int, step
 def _check_finite(values: np.ndarray, what: str, who: str, phase: int, step: int) -> None:
     if not np.all(np.isfinite(values)):
         raise Diverged(f"{who} met a non-finite {what} in phase {phase} at step {step} of a group; a group keeps "
-                       "no checkpoint yet: train it again with --force and a lower learning rate, or check the environment")
+                       "no checkpoint yet: train it again with --force and a lower learning rate, or check the "
+                       "environment")
 
 
 def group_recipes(path: str | Path, seeds: Sequence[int], overrides: Sequence[str]) -> list[Recipe]:

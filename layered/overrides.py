@@ -88,5 +88,5 @@ def grid(overrides: Sequence[str]) -> list[tuple[list[str], list[str]]]:
     setups: list[tuple[list[str], list[str]]] = [([], [])]
     for options in axes:
         varies = len(options) > 1
-        setups = [(chosen + [option], named + [option] * varies) for chosen, named in setups for option in options]
+        setups = [([*chosen, option], named + [option] * varies) for chosen, named in setups for option in options]
     return setups

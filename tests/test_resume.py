@@ -17,7 +17,7 @@ from conftest import assert_same_run, stop_at_episode_end, train_until_stopped
 from layered import load_recipe
 from layered.checkpoint import CheckpointError, load_checkpoint, previous
 from layered.interrupt import Stopped
-from layered.rundir import RunDirError, read_run_info
+from layered.rundir import RunDirError, read_run_info, writer
 from layered.runs import resume, train
 from layered.trainer import Diverged
 
@@ -108,8 +108,8 @@ def test_divergence_stops_naming_layer_phase_and_step_and_keeps_the_last_checkpo
     # checkpoint, here the episode end at step 400, before anything of that checkpoint is written.
     with pytest.raises(Diverged, match="layer 'fast' met a non-finite loss in phase 1 at step 400") as diverged:
         train(recipe, tmp_path, max_steps=700, progress=False)
-    way_on = f"the last checkpoint is intact: continue from it with a lower learning rate, `layered resume {tmp_path} " \
-             "--set layers.fast.learner.lr=0.0001`"
+    way_on = ("the last checkpoint is intact: continue from it with a lower learning rate, "
+              f"`layered resume {tmp_path} --set layers.fast.learner.lr=0.0001`")
     assert str(diverged.value).endswith(way_on)
     monkeypatch.undo()
     for settings, why in ((["env.id=Hopper-v5"], "not env.id"), (["layers.fast.learner.hidden=[8]"], "does not fit"),
@@ -265,7 +265,7 @@ def test_twenty_random_faults_kill_damage_and_contention_end_byte_identical(tmp_
         proc = start()
         if fault == "second writer":
             deadline = time.monotonic() + 30
-            while not (out / ".lock").exists() and proc.poll() is None and time.monotonic() < deadline:
+            while writer(out) is None and proc.poll() is None and time.monotonic() < deadline:
                 time.sleep(0.05)
             second = layered("resume", out, "--threads", 1)
             _, err = second.communicate(timeout=60)
