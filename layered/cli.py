@@ -66,20 +66,27 @@ def _positive(text: str) -> int:
     return value
 
 
+MAX_GROUP = 4096  # seeds in one group: more would not fit one process's memory anyway
+
+
 def _seeds(text: str) -> list[int]:
     """`--seeds`: a count N (seeds 0..N-1), a range A-B (inclusive) or a list A,B,C."""
     try:
+        if len(text) > 100_000:
+            raise ValueError
         if "," in text:
             seeds = [int(part) for part in text.split(",")]
         elif "-" in text.strip("-"):
             first, last = (int(part) for part in text.split("-", 1))
-            seeds = list(range(first, last + 1))
+            seeds = list(range(first, min(last, first + MAX_GROUP) + 1))
         else:
-            seeds = list(range(_positive(text)))
+            seeds = list(range(min(_positive(text), MAX_GROUP + 1)))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected N, A-B or A,B,C, got {text!r}") from None
     if not seeds or min(seeds) < 0 or max(seeds) > 2**32 - 1 or len(set(seeds)) != len(seeds):
-        raise argparse.ArgumentTypeError(f"expected distinct seeds from 0 to 2**32-1, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected distinct seeds from 0 to 2**32-1, got {text[:40]!r}")
+    if len(seeds) > MAX_GROUP:
+        raise argparse.ArgumentTypeError(f"at most {MAX_GROUP} seeds in one group, got {text[:40]!r}")
     return seeds
 
 

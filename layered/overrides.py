@@ -83,7 +83,7 @@ def grid(overrides: Sequence[str]) -> list[tuple[list[str], list[str]]]:
     axes = []
     for override in overrides:
         key, sep, text = override.partition("=")
-        values = split_values(text) if sep else [text]
+        values = list(dict.fromkeys(split_values(text))) if sep else [text]  # a value named twice is one setup
         axes.append([f"{key}={value.strip()}" if sep else override for value in values])
     setups: list[tuple[list[str], list[str]]] = [([], [])]
     for options in axes:
