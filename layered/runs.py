@@ -76,7 +76,8 @@ def train(
     without, a directory holding a run is refused. `plugins` (see layered.plugins) are recorded
     so that evaluating the run imports them again. `change` (with `resume`): `recipe` is the run's own
     with some settings changed, recorded in run.json at the step it continues from. Returns the
-    results row of each phase, as in results.json. Raises Stopped when SIGINT or SIGTERM stopped it, after a final checkpoint.
+    results row of each phase, as in results.json. Raises Stopped when SIGINT or SIGTERM stopped it,
+    after a final checkpoint.
     """
     out = Path(out_dir)
     for warning in warmup_warnings(recipe, max_steps):
