@@ -65,7 +65,8 @@ def writing(run_dir: Path) -> Iterator[None]:
         raise RunDirError(f"{run_dir} is being written by {holder}; wait for it to end, or stop it") from None
     try:
         os.ftruncate(fd, 0)
-        command = " ".join(["layered", *sys.argv[1:]])[:200]
+        command = " ".join(["layered", *sys.argv[1:]])
+        command = command if len(command) <= 200 else f"{command[:120]} ... {command[-75:]}"  # --out is last
         os.write(fd, f"process {os.getpid()} on {socket.gethostname()} ({command})".encode())
         _HELD.add(run_dir.resolve())
         yield
