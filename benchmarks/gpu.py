@@ -9,9 +9,12 @@ Two parts, each printing a markdown table:
 * **sweep**: `layered sweep --jobs N --device cuda` with N seeds at once, for each N of `--jobs`;
   per-seed steps/s are read from each run's train.log (the rate between evaluations, the first
   interval left out), and their sum is the aggregate.
+* **group**: `layered train --seeds K --device cuda`, K seeds as one computation in one process, for
+  each K of `--groups`, on `--env` (Pendulum-v1, or e.g. Hopper-v5); the rate of its progress lines
+  times K is the aggregate.
 
     python benchmarks/gpu.py                                  # both parts, on the GPU
-    python benchmarks/gpu.py --device cpu --modes off,inductor --jobs 1,2 --steps 1500   # a dry run
+    python benchmarks/gpu.py --device cpu --modes off,inductor --jobs 1,2 --groups 1,2 --steps 1500   # a dry run
 
 Runs on CPU with `--device cpu` (without `cudagraphs`) to check the script itself.
 """
@@ -90,6 +93,25 @@ def sweep(device: str, jobs: int, steps: int, warmup: int) -> dict[str, Any]:
     return {"jobs": jobs, "per_seed": rates, "aggregate": sum(rates), "wall_seconds": wall}
 
 
+def group(device: str, seeds: int, steps: int, warmup: int, env: str) -> dict[str, Any]:
+    """`layered train --seeds` with `seeds` seeds as one group; its steps/s (per seed, every seed stepping
+    at once) from the progress lines, the first interval left out, times the seeds."""
+    with tempfile.TemporaryDirectory() as tmp:
+        recipe = Path(tmp) / "td3.toml"
+        recipe.write_text(tomli_w.dumps({**RECIPE, "env": {"id": env},
+                                         "train": {"steps_per_phase": steps, "warmup": warmup},
+                                         "eval": {**RECIPE["eval"], "every": max(steps // 6, 1)}}))
+        start = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "layered.cli", "train", str(recipe), "--seeds", str(seeds),
+                               "--device", device, "--out", str(Path(tmp) / "runs")], capture_output=True, text=True)
+        wall = time.perf_counter() - start
+        if proc.returncode != 0:
+            raise SystemExit(f"group of {seeds} failed: {proc.stderr.strip().splitlines()[-1]}")
+        intervals = [int(m.group(2)) for m in RATE.finditer(proc.stderr)]
+        rate = statistics.median(intervals[1:] or intervals)
+    return {"seeds": seeds, "per_seed": rate, "aggregate": rate * seeds, "wall_seconds": wall}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cuda", help="cuda (default) or cpu for a dry run")
@@ -98,7 +120,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=6000, help="environment steps per run (default 6000)")
     parser.add_argument("--warmup", type=int, default=1000, help="random steps before updates (default 1000)")
     parser.add_argument("--settle", type=int, default=200, help="updates left out of the rate (default 200)")
-    parser.add_argument("--parts", default="modes,sweep", help="which parts to run (default modes,sweep)")
+    parser.add_argument("--groups", default="1,4,16,64", help="seeds trained as one group, comma-separated")
+    parser.add_argument("--env", default="Pendulum-v1", help="the environment of the group part (e.g. Hopper-v5)")
+    parser.add_argument("--parts", default="modes,sweep,group", help="which parts to run (default all three)")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -126,6 +150,12 @@ def main() -> None:
             row = sweep(args.device, jobs, args.steps, args.warmup)
             seeds = ", ".join(f"{r:.0f}" for r in row["per_seed"])
             print(f"| {jobs} | {row['aggregate']:.0f} | {seeds} | {row['wall_seconds']:.1f} |", flush=True)
+    if "group" in args.parts:
+        print(f"\n{args.env}, seeds as one group (layered train --seeds K)\n\n"
+              "| K | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|")
+        for k in map(int, args.groups.split(",")):
+            row = group(args.device, k, args.steps, args.warmup, args.env)
+            print(f"| {k} | {row['aggregate']:.0f} | {row['per_seed']:.0f} | {row['wall_seconds']:.1f} |", flush=True)
 
 
 if __name__ == "__main__":
