@@ -75,3 +75,22 @@ def test_threshold_per_dimension():
     combiner = ResidualClip(threshold=np.array([0.6, 0.6]), per_dimension=True)
     out = combiner.admit(np.array([0.0, 0.0]), np.array([0.7, -0.1]), LOW, HIGH)
     assert np.array_equal(out, [0.7, 0.0])
+
+
+def test_an_effect_exactly_at_the_threshold_is_kept():
+    """The paper drops corrections *smaller* than the threshold: one of exactly the threshold stays."""
+    combiner = ResidualClip(threshold=np.array([0.5, 0.5]))
+    assert np.array_equal(combiner.admit(np.array([0.0, 0.0]), np.array([0.5, 0.0]), LOW, HIGH), [0.5, 0.0])
+    per_dimension = ResidualClip(threshold=np.array([0.5, 0.5]), per_dimension=True)
+    assert np.array_equal(per_dimension.admit(np.array([0.0, 0.0]), np.array([0.5, 0.25]), LOW, HIGH), [0.5, 0.0])
+
+
+def test_a_combiner_without_threshold_round_trips_through_json():
+    from layered.combiners import Gate, combiner_from_json
+
+    for combiner in (ResidualClip(), Gate()):
+        data = combiner.to_json()
+        assert data["threshold"] is None
+        back = combiner_from_json(data)
+        assert type(back) is type(combiner) and back.threshold is None
+    assert combiner_from_json(ResidualClip(np.array([0.5])).to_json()).threshold.dtype == np.float32

@@ -72,3 +72,19 @@ def test_distinct_states_spread_by_farthest_point_from_the_first():
     # repeated states are not shown twice, and nothing comes of nothing
     assert distinct_states([np.zeros(2), np.zeros(2), np.ones(2)], 3) == [0, 2]
     assert distinct_states([], 8) == []
+
+
+def test_normalised_auc_of_two_points_and_of_a_curve_starting_late():
+    # two points: one trapezoid; steps 1000 and 3000 over range (0, 100): (0.2 + 0.6) / 2
+    assert normalised_auc([1000, 3000], [20, 60], (0, 100)) == pytest.approx(0.4)
+    # a curve starting at step 2000 (a resumed phase's view): spans 2000..6000, area 2000*0.5 + 2000*0.75
+    assert normalised_auc([2000, 4000, 6000], [0, 100, 50], (0, 100)) == pytest.approx((1000 + 1500) / 4000)
+    # several evaluations at one step: its last normalised return
+    assert normalised_auc([5, 5, 5], [0, 10, 30], (0, 100)) == pytest.approx(0.3)
+
+
+def test_summarise_of_one_episode_is_that_episode():
+    e = measure_episode(steps([a(0.0), a(1.0)], [-1.0, -3.0], [("x",), ()], [("x",), ()]), {"x": 2})
+    s = summarise([e])
+    assert (s.return_mean, s.return_std, s.return_min, s.return_max, s.steps) == (-4.0, 0.0, -4.0, -4.0, 2.0)
+    assert s.row()["episode_steps"] == 2.0 and s.decided == {"x": 0.5}

@@ -245,13 +245,14 @@ def test_twenty_random_faults_kill_damage_and_contention_end_byte_identical(tmp_
     write, bytes damaged in the newest checkpoint while nothing runs (the previous one is then used),
     or a second writer started while one runs (refused in one line, the first goes on); then the
     run is finished and compared with one never disturbed."""
+    run = [*CLI_RUN[:-4], "--steps", 12000, "--threads", 1]  # long enough for 20 faults
     whole = tmp_path / "whole"
-    assert layered("train", *CLI_RUN, "--out", whole).wait() == 0
+    assert layered("train", *run, "--out", whole).wait() == 0
     out, rng = tmp_path / "faults", random.Random(11)
 
     def start() -> subprocess.Popen:
         return layered("resume", out, "--threads", 1) if (out / "run.json").exists() else \
-            layered("train", *CLI_RUN, "--out", out)
+            layered("train", *run, "--out", out)
 
     faults = []
     for _ in range(20):
@@ -280,7 +281,7 @@ def test_twenty_random_faults_kill_damage_and_contention_end_byte_identical(tmp_
         if kill_when(proc, ready, timeout=15.0):
             faults.append(fault)
         else:
-            break  # the run finished
+            break  # the run finished early: too few faults, which the count below catches
     proc = start() if not (out / "results.json").exists() else None
     if proc is not None:
         _, err = proc.communicate()

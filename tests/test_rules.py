@@ -138,3 +138,120 @@ def test_a_gate_over_a_delayed_fast_layer_with_a_reset_in_one_row():
     assert [a for _, a, _ in trace] == [[0.5, 0.0], [0.5, 0.1], [0.5, 0.0], [0.5, 0.1]]
     # row 1's fast layer sees its output in flight as it will be executed: 0.1 at step 1, cleared by the reset
     assert [float(s[1, -1]) for _, _, s in trace] == pytest.approx([0.0, 0.1, 0.0, 0.1])
+
+
+def test_a_repeat_count_is_rounded_and_held_within_one_and_the_maximum():
+    from layered.rules import Layer
+
+    def layer(max_repeat):
+        return Layer("x", 2, np.array([-1, -1, 1], np.float32), np.array([1, 1, max_repeat], np.float32),
+                     max_repeat=max_repeat)
+
+    outputs = np.array([[0.0, 9.0, 0.2], [0.0, 9.0, 1.6], [0.0, 9.0, 2.4], [0.0, 9.0, 7.0]], np.float32)
+    assert layer(1).repeats(outputs) == 1
+    assert list(layer(2).repeats(outputs)) == [1, 2, 2, 2]
+    assert list(layer(3).repeats(outputs)) == [1, 2, 2, 3]
+
+
+@pytest.mark.parametrize("active", [[], [1, 0], [0, 2], [0, 0]])
+def test_the_present_layers_must_be_increasing_indices_of_the_stack(active):
+    layers = rules_of([2, 1], "residual-clip", 1).layers
+    with pytest.raises(ValueError, match="must be increasing indices of the 2 layers"):
+        Rules(layers, active, ACT.low, ACT.high)
+
+
+def test_what_a_layer_sees_is_bounded_to_include_zero():
+    """Before the first decision an output is zero, so the bounds of a seen output, and of outputs in
+    flight, include 0 even when the layer's own bounds do not."""
+    from layered.rules import Layer
+
+    slow = Layer("slow", 2, np.array([0.5], np.float32), np.array([2.0], np.float32))
+    fast = Layer("fast", 1, np.array([-2.0], np.float32), np.array([-0.5], np.float32), sees=(0,), delay=1)
+    rules = Rules([slow, fast], [0, 1], ACT.low, ACT.high)
+    low, high = rules.observation_bounds(1, OBS.low, OBS.high)
+    assert low.tolist() == [-1, -1, -1, 0.0, -2.0] and high.tolist() == [1, 1, 1, 2.0, 0.0]
+
+
+def test_the_upcoming_decision_step_rounds_up_to_the_period():
+    rules = rules_of([4, 1], "residual-clip", 3)
+    rules.t[:] = [0, 5, 8]
+    assert rules.upcoming(0).tolist() == [0, 8, 8] and rules.upcoming(1).tolist() == [0, 5, 8]
+
+
+def test_a_gate_that_is_the_fastest_present_layer_only_adds():
+    """In a phase where the gate layer is present alone, there is no layer below to defer to: its
+    action is executed whatever its gate says."""
+    rules = rules_of([4, 1], "gate", 2)
+    alone = Rules(rules.layers, [0], ACT.low, ACT.high, 2)
+    alone.hold(0, np.array([[0.5, -1.0], [-0.25, 1.0]], np.float32))  # a deferring gate, a committing one
+    composition = alone.compose()
+    assert composition.action[:, 0].tolist() == [0.5, -0.25]
+    assert composition.routes[0].tolist() == [0, 0]
+
+
+def test_next_due_by_default_starts_at_the_slowest_layer_and_says_minus_one_for_none():
+    rules = rules_of([4, 1], "residual-clip", 2)
+    assert rules.next_due().tolist() == [0, 0]
+    rules.t[:] = [1, 4]
+    assert rules.next_due(np.array([0, 1])).tolist() == [1, 1]  # a start per row
+    assert rules.next_due(np.array([2, 0])).tolist() == [-1, 0]
+
+
+def test_below_a_committed_gate_only_a_layer_learning_from_commits_is_due():
+    rules = rules_of([2, 1, 1], ["gate", "residual-clip"], 2, learn_from_commits=[False, True, False])
+    rules.hold(0, np.array([[0.5, 1.0], [0.5, -1.0]], np.float32))  # row 0 commits, row 1 defers
+    assert rules.next_due(1).tolist() == [1, 1]
+    assert rules.next_due(2).tolist() == [-1, 2]
+
+
+def test_outputs_two_decisions_in_flight_take_effect_in_turn():
+    """A delay of 2 decisions at period 2: what is in effect at each coming step, and what the layer
+    sees of its own outputs in flight."""
+    rules = rules_of([2, 1], "residual-clip", 1, delay=[0, 2])
+    fast = 1
+    for value in (0.1, 0.2, 0.3):  # the fast layer decides every step
+        rules.hold(fast, np.array([[value]], np.float32))
+        rules.tick()
+    # decided 0.1, 0.2, 0.3 at steps 0, 1, 2: 0.1 took effect at 2; 0.2 and 0.3 are in flight
+    assert rules.held[fast].tolist() == [[pytest.approx(0.1)]]
+    steps = rules.t.copy()  # now, step 3
+    assert rules.in_effect(fast, steps)[0].tolist() == [pytest.approx(0.2)]
+    assert rules.in_effect(fast, steps + 1)[0].tolist() == [pytest.approx(0.3)]
+    seen = rules.observation(fast, np.zeros((1, 3), np.float32))[0]
+    assert seen[-2:].tolist() == [pytest.approx(0.2), pytest.approx(0.3)]  # its own outputs in flight, in turn
+
+
+def test_decided_records_what_each_row_decided_and_tick_advances_only_the_masked_rows():
+    rules = rules_of([2, 1], "residual-clip", 3)
+    rules.decide(1, np.array([[0.5], [0.25], [-0.5]], np.float32))
+    rules.decide(1, np.array([[1.0], [1.0], [1.0]], np.float32), np.array([False, True, False]))
+    assert rules.decided[1][:, 0].tolist() == [0.5, 1.0, -0.5]
+    rules.tick(np.array([True, False, True]))
+    assert rules.t.tolist() == [1, 0, 1]
+
+
+def test_decide_all_hands_each_layer_its_own_observation():
+    rules = rules_of([2, 1], "residual-clip", 2)  # the fast layer sees the slow layer's output
+    obs = np.array([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]], np.float32)
+    seen = {}
+
+    def act(i, observation, rows):
+        seen[i] = observation.copy()
+        return np.full((int(rows.sum()), rules.layers[i].size), 0.5 if i == 0 else 0.0, np.float32)
+
+    rules.decide_all(obs, act)
+    assert seen[0].tolist() == obs.tolist()
+    assert seen[1][:, :3].tolist() == obs.tolist() and seen[1][:, 3].tolist() == [0.5, 0.5]
+
+
+def test_deferring_scales_rewards_up_to_zero_and_down_above_and_penalises_deviation():
+    rules = rules_of([2, 1], "gate", 2, defer_reward_scale=[(2.0, 0.5), (1.0, 1.0)],
+                     deviation_penalty=[0.0, 1.0], action_penalty=[0.0, 1.0])
+    rules.hold(0, np.array([[1.0, -1.0], [1.0, -1.0]], np.float32))  # both rows defer, proposing 1.0
+    rules.hold(1, np.array([[0.0], [-1.0]], np.float32))  # the executed actions: 0.0 and -1.0
+    composition = rules.compose()
+    shares = rules.layer_rewards(np.array([0.5, -0.5]), composition)
+    assert shares[0].tolist() == [0.25, -1.0]
+    # fast: the action penalty (|a| / fast half-range 2) and the deviation from the proposed 1.0 (/ half-range 2)
+    # (a deferring gate's own action is not executed: the actions are the fast layer's 0.0 and -1.0)
+    assert shares[1].tolist() == [pytest.approx(0.5 - 0.0 - 0.5), pytest.approx(-0.5 - 0.5 - 1.0)]
