@@ -3,7 +3,15 @@
 import numpy as np
 import pytest
 
-from layered.metrics import StepRecord, action_repetition, jerk, measure_episode, normalised_auc, summarise
+from layered.metrics import (
+    Evaluation,
+    StepRecord,
+    action_repetition,
+    jerk,
+    measure_episode,
+    normalised_auc,
+    summarise,
+)
 
 
 def a(*xs):
@@ -81,10 +89,17 @@ def test_normalised_auc_of_two_points_and_of_a_curve_starting_late():
     assert normalised_auc([2000, 4000, 6000], [0, 100, 50], (0, 100)) == pytest.approx((1000 + 1500) / 4000)
     # several evaluations at one step: its last normalised return
     assert normalised_auc([5, 5, 5], [0, 10, 30], (0, 100)) == pytest.approx(0.3)
+    # the first two at one step, then on: still the trapezoid over the span
+    assert normalised_auc([0, 0, 10], [0, 100, 100], (0, 100)) == pytest.approx(1.0)
 
 
 def test_summarise_of_one_episode_is_that_episode():
     e = measure_episode(steps([a(0.0), a(1.0)], [-1.0, -3.0], [("x",), ()], [("x",), ()]), {"x": 2})
     s = summarise([e])
     assert (s.return_mean, s.return_std, s.return_min, s.return_max, s.steps) == (-4.0, 0.0, -4.0, -4.0, 2.0)
-    assert s.row()["episode_steps"] == 2.0 and s.decided == {"x": 0.5}
+    assert s.decided == {"x": 0.5}
+    row = s.row()
+    assert list(row) == Evaluation.columns(["x"])
+    assert row == {"return_mean": -4.0, "return_std": 0.0, "return_min": -4.0, "return_max": -4.0,
+                   "repetition": 0.0, "jerk": 1.0, "decisions": 1.0, "compute": 2.0, "episode_steps": 2.0,
+                   "decided_x": 0.5, "acted_x": 0.5, "contribution_x": 0.25}

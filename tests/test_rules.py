@@ -165,11 +165,14 @@ def test_what_a_layer_sees_is_bounded_to_include_zero():
     flight, include 0 even when the layer's own bounds do not."""
     from layered.rules import Layer
 
-    slow = Layer("slow", 2, np.array([0.5], np.float32), np.array([2.0], np.float32))
-    fast = Layer("fast", 1, np.array([-2.0], np.float32), np.array([-0.5], np.float32), sees=(0,), delay=1)
+    slow = Layer("slow", 2, np.array([0.25], np.float32), np.array([0.5], np.float32))
+    fast = Layer("fast", 1, np.array([0.5], np.float32), np.array([0.75], np.float32), sees=(0,), delay=1)
     rules = Rules([slow, fast], [0, 1], ACT.low, ACT.high)
     low, high = rules.observation_bounds(1, OBS.low, OBS.high)
-    assert low.tolist() == [-1, -1, -1, 0.0, -2.0] and high.tolist() == [1, 1, 1, 2.0, 0.0]
+    assert low.tolist() == [-1, -1, -1, 0.0, 0.0] and high.tolist() == [1, 1, 1, 0.5, 0.75]
+    negative = Layer("fast", 1, np.array([-2.0], np.float32), np.array([-1.5], np.float32), sees=(0,), delay=1)
+    low, high = Rules([slow, negative], [0, 1], ACT.low, ACT.high).observation_bounds(1, OBS.low, OBS.high)
+    assert low.tolist()[-1] == -2.0 and high.tolist()[-1] == 0.0
 
 
 def test_the_upcoming_decision_step_rounds_up_to_the_period():
@@ -195,6 +198,13 @@ def test_next_due_by_default_starts_at_the_slowest_layer_and_says_minus_one_for_
     rules.t[:] = [1, 4]
     assert rules.next_due(np.array([0, 1])).tolist() == [1, 1]  # a start per row
     assert rules.next_due(np.array([2, 0])).tolist() == [-1, 0]
+
+
+def test_a_row_whose_layer_is_due_is_not_reopened_by_a_commit_in_another_row():
+    rules = rules_of([2, 1], "gate", 2)
+    rules.hold(0, np.array([[0.5, -1.0], [0.5, 1.0]], np.float32))  # row 1's gate commits
+    rules.t[:] = [2, 3]  # the gate is due in row 0 only
+    assert rules.next_due(0).tolist() == [0, -1]
 
 
 def test_below_a_committed_gate_only_a_layer_learning_from_commits_is_due():
