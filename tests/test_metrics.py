@@ -90,7 +90,7 @@ def test_normalised_auc_of_two_points_and_of_a_curve_starting_late():
     # several evaluations at one step: its last normalised return
     assert normalised_auc([5, 5, 5], [0, 10, 30], (0, 100)) == pytest.approx(0.3)
     # the first two at one step, then on: still the trapezoid over the span
-    assert normalised_auc([0, 0, 10], [0, 100, 100], (0, 100)) == pytest.approx(1.0)
+    assert normalised_auc([0, 0, 10], [0, 0, 100], (0, 100)) == pytest.approx(0.5)
 
 
 def test_summarise_of_one_episode_is_that_episode():
