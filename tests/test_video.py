@@ -1,10 +1,13 @@
 """`layered eval --video`: an MP4 per episode, with the layer strip under every frame, for each
 environment family."""
 
+import os
+
 import imageio.v2 as imageio
 import numpy as np
 import pytest
 
+import layered.envs  # noqa: F401  (chooses MuJoCo's GL backend: `disable` where no GL library is installed)
 from layered import load_recipe
 from layered.learner_set import build_learners
 from layered.trainer import phases_of
@@ -20,6 +23,8 @@ RECIPES = {  # recipe, episodes (dm_control renders in software here, 30 ms a fr
 @pytest.mark.parametrize("family", list(RECIPES))
 def test_video_per_episode_with_the_layer_strip(family, tmp_path):
     path, episodes = RECIPES[family]
+    if family != "classic control" and os.environ.get("MUJOCO_GL") == "disable":
+        pytest.skip("no OpenGL library (EGL or OSMesa) on this machine for MuJoCo to render with")
     recipe = load_recipe(path, ["learner.hidden=[16, 16]"])
     learners = build_learners(recipe)
     active = list(phases_of(recipe)[-1].active)
