@@ -22,6 +22,7 @@ PAPER = {"td3": (-150.93, 27.28, 0.0604), "tla-c": (-152.58, 28.22, 0.7096)}
 
 
 @pytest.mark.learning
+@pytest.mark.timeout(2400)  # about 15 minutes on 2 cores, beyond the suite's 600 s per test
 def test_pendulum_td3_and_tla_c_learn_as_the_paper_reports(tmp_path):
     """TD3 and TLA-C at the recipes' budgets, seeds 0 and 1 (one sweep, two processes): each seed's final
     return within three of the paper's standard deviations of its mean, TLA-C repeating most of its
@@ -42,6 +43,7 @@ def test_pendulum_td3_and_tla_c_learn_as_the_paper_reports(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(7200)
 def test_pendulum_tla_o_makes_fewer_decisions_than_td3(tmp_path):
     train(load_recipe(PENDULUM / "tla-o.toml"), tmp_path / "tla-o", progress=False)
     result = final(tmp_path / "tla-o")

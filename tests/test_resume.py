@@ -240,6 +240,7 @@ def _intact(path: Path) -> bool:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)
 def test_twenty_random_faults_kill_damage_and_contention_end_byte_identical(tmp_path):
     """20 cycles, each of a fault picked at random: SIGKILL at a random moment, SIGKILL mid checkpoint
     write, bytes damaged in the newest checkpoint while nothing runs (the previous one is then used),
