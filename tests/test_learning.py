@@ -1,4 +1,4 @@
-"""Learning checks on the paper's Pendulum budgets: `pytest -m learning` (CI's learning step, about 15
+"""Learning checks on the paper's Pendulum budgets: `pytest -m learning` (CI's learning step, about 16
 minutes on 2 cores), and longer ones on request with `pytest -m slow`."""
 
 import json
@@ -22,7 +22,7 @@ PAPER = {"td3": (-150.93, 27.28, 0.0604), "tla-c": (-152.58, 28.22, 0.7096)}
 
 
 @pytest.mark.learning
-@pytest.mark.timeout(2400)  # about 15 minutes on 2 cores, beyond the suite's 600 s per test
+@pytest.mark.timeout(2400)  # about 16 minutes on 2 cores, beyond the suite's 600 s per test
 def test_pendulum_td3_and_tla_c_learn_as_the_paper_reports(tmp_path):
     """TD3 and TLA-C at the recipes' budgets, seeds 0 and 1 (one sweep, two processes): each seed's final
     return within three of the paper's standard deviations of its mean, TLA-C repeating most of its
