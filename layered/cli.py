@@ -198,34 +198,32 @@ def _train(args: argparse.Namespace) -> int:
     if args.seeds is not None:
         return _train_group(args, overrides, plugins)
     recipe = load_recipe(args.recipe, overrides)
-    stem = recipe_path(args.recipe).stem
-    out = args.out or Path("runs") / f"{stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+    source = recipe_path(args.recipe)
+    out = args.out or Path("runs") / f"{source.stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
     args.out = out
     if args.force and out.is_dir():
         clear_run_dir(out)
     check_new_run_dir(out)
     print(f"training {args.recipe} -> {out}", file=sys.stderr)
-    source = recipe_path(args.recipe)
     train(recipe, out, max_steps=args.steps, label=f"{source.parent.name}/{source.stem}", plugins=plugins)
     return _finished(out)
 
 
 def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[str]) -> int:
     from layered.group import check_group, group_recipes, train_group
-    from layered.rundir import check_new_run_dir, clear_run_dir
+    from layered.rundir import clear_run_dir
 
     if args.seed is not None:
         return _fail("give --seed or --seeds, not both")
     recipes = group_recipes(args.recipe, args.seeds, overrides)
     check_group(recipes[0])
-    out = args.out or Path("runs") / f"{recipe_path(args.recipe).stem}-group-{time.strftime('%Y%m%d-%H%M%S')}"
+    source = recipe_path(args.recipe)
+    out = args.out or Path("runs") / f"{source.stem}-group-{time.strftime('%Y%m%d-%H%M%S')}"
     args.out = None  # a group is not resumed seed by seed
     outs = [out / f"seed{seed}" for seed in args.seeds]
     for run in outs:
         if args.force and run.is_dir():
             clear_run_dir(run)
-        check_new_run_dir(run)
-    source = recipe_path(args.recipe)
     print(f"training {args.recipe}, seeds {args.seeds} as one group -> {out}", file=sys.stderr)
     results = train_group(recipes, outs, f"{source.parent.name}/{source.stem}", args.steps, plugins=plugins)
     for seed, rows in zip(args.seeds, results, strict=True):

@@ -26,7 +26,7 @@ import torch
 
 from layered.checkpoint import save_checkpoint
 from layered.env_group import EnvGroup
-from layered.group_eval import evaluate_group
+from layered.group_eval import all_rows, evaluate_group
 from layered.learner_set import build_learners, keep_start_weights, start_from_weights
 from layered.learners.td3_group import GroupLosses, TD3Group
 from layered.logs import CsvLog
@@ -96,6 +96,8 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
     """Train the recipes (one recipe's seeds: they differ in `train.seed` alone) as one group, seed k
     into `outs[k]`; the results rows of every phase, per seed."""
     check_group(recipes[0])
+    for out in outs:
+        check_new_run_dir(out)  # before anything is built or written
     for warning in warmup_warnings(recipes[0], max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
     singles = []
@@ -103,8 +105,6 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
         learners = build_learners(recipe)
         start_from_weights(recipe, learners)
         singles.append(learners)
-    for out in outs:
-        check_new_run_dir(out)
     info = RunInfo(label, max_steps, tuple(plugins), tuple(recipe.train.seed for recipe in recipes))
     with ExitStack() as locks:
         seeds = []
@@ -176,8 +176,7 @@ class Group:
         bar = Progress(f"phase {p}: {'+'.join(phase.learn)} ({self.rows} seeds)", budget, 0, self.progress)
 
         def act(i: int, seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
-            full = np.zeros((self.rows, seen.shape[1]), np.float32)
-            full[deciding] = seen
+            full = all_rows(seen, deciding)
             group = self.learners[self.names[i]]
             if i not in pending:
                 return group.act(full, explore=False)[deciding]

@@ -15,6 +15,14 @@ GroupPolicy = Callable[[int, np.ndarray], np.ndarray]
 """Layer i's greedy outputs for every row's observation: (i, [K, obs]) -> [K, size]."""
 
 
+def all_rows(seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
+    """The observations `Rules.decide_all` hands a policy (the deciding rows' only) as one `[K, obs]` array,
+    zeros in the other rows: what a learner stacked over the K seeds takes."""
+    full = np.zeros((len(deciding), seen.shape[1]), np.float32)
+    full[deciding] = seen
+    return full
+
+
 def evaluate_group(rules: Rules, envs: EnvGroup, policy: GroupPolicy, macs: dict[str, int], episodes: int,
                    seeds: Sequence[int]) -> list[Evaluation]:
     """Each row's mean measures over `episodes` episodes, its environment seeded once with `seeds[k]`
@@ -28,9 +36,7 @@ def evaluate_group(rules: Rules, envs: EnvGroup, policy: GroupPolicy, macs: dict
     rules.reset()
 
     def act(i: int, seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
-        full = np.zeros((rows, seen.shape[1]), np.float32)
-        full[deciding] = seen
-        return policy(i, full)[deciding]
+        return policy(i, all_rows(seen, deciding))[deciding]
 
     while live.any():
         decided = rules.decide_all(envs.obs, act)

@@ -62,6 +62,7 @@ class Change:
 
     before: Recipe
     settings: tuple[str, ...]
+    differences: tuple[str, ...]  # `key: before -> after` of each changed value
 
 
 def train(
@@ -121,7 +122,7 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
                               "again with --force and the settings in the recipe or on the command line")
         record_change(out, tomli_w.dumps(resolved(recipe)), {
             "phase": state.phase, "step": state.step, "set": list(change.settings), "from": changed_from,
-            "differences": recipe_differences(resolved(change.before), resolved(recipe))})
+            "differences": list(change.differences)})
     resumed_at = None if state is None else (state.phase, state.step)
     run = Training(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
               CsvLog(out / "episodes.csv", EPISODE_FIELDS), checkpoint, max_steps, progress, StopRequest(),
@@ -176,13 +177,14 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
     recipe = load_recipe(run_dir / "recipe.toml")
     change = None
     if settings:
-        change, recipe = Change(recipe, tuple(settings)), load_recipe(run_dir / "recipe.toml", settings)
-        differences = recipe_differences(resolved(change.before), resolved(recipe))
+        before, recipe = recipe, load_recipe(run_dir / "recipe.toml", settings)
+        differences = recipe_differences(resolved(before), resolved(recipe))
         if not differences:
             raise RunDirError(f"{run_dir}: --set {' '.join(settings)} changes nothing")
         fixed = [d.split(":")[0] for d in differences if not CHANGEABLE.match(d.split(":")[0])]
         if fixed:
             raise RunDirError(f"{run_dir}: a resumed run may change a layer's learner settings (not its kind), "
                               f"action_penalty and updates, not {', '.join(fixed)}")
+        change = Change(before, tuple(settings), tuple(differences))
     return train(recipe, run_dir, info.max_steps, progress, info.label, resume=True, plugins=info.plugins,
                  change=change)

@@ -106,6 +106,15 @@ def _check_same_run(job: Job) -> None:
 _STOP: Any = None  # in a worker: the sweep's event, set once it is asked to stop (no new run starts)
 
 
+def _stopped() -> bool:
+    """Whether this worker's sweep was asked to stop."""
+    return _STOP is not None and _STOP.is_set()
+
+
+def _not_started(job: Job) -> Outcome:
+    return Outcome(job, "not started", "the sweep was stopped; the same sweep again starts it")
+
+
 def run_job(job: Job) -> Outcome:
     """Train one job in this process (one torch thread), its output going to the run's train.log."""
     import torch
@@ -115,8 +124,8 @@ def run_job(job: Job) -> Outcome:
 
     if (job.out / "results.json").exists():
         return Outcome(job, "skipped", "already finished")
-    if _STOP is not None and _STOP.is_set():
-        return Outcome(job, "not started", "the sweep was stopped; the same sweep again starts it")
+    if _stopped():
+        return _not_started(job)
     torch.set_num_threads(1)
     load_plugins(job.plugins)
     job.out.mkdir(parents=True, exist_ok=True)
@@ -147,8 +156,8 @@ def run_group(jobs: Sequence[Job]) -> list[Outcome]:
 
     if all((job.out / "results.json").exists() for job in jobs):
         return [Outcome(job, "skipped", "already finished") for job in jobs]
-    if _STOP is not None and _STOP.is_set():
-        return [Outcome(job, "not started", "the sweep was stopped; the same sweep again starts it") for job in jobs]
+    if _stopped():
+        return [_not_started(job) for job in jobs]
     load_plugins(jobs[0].plugins)
     for job in jobs:
         if job.out.is_dir():

@@ -109,10 +109,11 @@ class StackedAdam:
     def seed_state(self, k: int) -> dict[str, Any]:
         """Seed k's part, in the layout of a single network's Adam (weights `[out, in]`, biases `[out]`)."""
         state = {}
-        for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True)):
-            if float(self.steps[k]):
-                state[index] = {"step": self.steps[k].detach().cpu().clone(), "exp_avg": _unstack(m, k, index),
-                                "exp_avg_sq": _unstack(v, k, index)}
+        if float(self.steps[k]):  # a seed never stepped has no moments, as a new Adam has none
+            step = self.steps[k].detach().cpu()
+            state = {index: {"step": step.clone(), "exp_avg": _unstack(m, k, index),
+                             "exp_avg_sq": _unstack(v, k, index)}
+                     for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True))}
         return {"state": state, "param_groups": copy.deepcopy(self.param_groups)}
 
     def load_seed_state(self, k: int, state: dict[str, Any]) -> None:
