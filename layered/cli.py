@@ -6,17 +6,21 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn
 
 import torch
 
 from layered.checkpoint import CheckpointError
+from layered.deploy import FAULT_ACTIONS, Settings
 from layered.envs import RenderingUnavailable
 from layered.export import ExportError
 from layered.interrupt import Stopped
+from layered.layer_process import Fault, LayerFault, Link
 from layered.plugins import PluginError, load_plugins
 from layered.recipe import RecipeError, load_recipe, recipe_path
 from layered.report import plot_episode, results_table
@@ -172,6 +176,30 @@ def _parser() -> argparse.ArgumentParser:
                     help="local processes (default) or Ray tasks (needs the extra layered-control[ray])")
     sw.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
     _plugin_option(sw)
+    dp = sub.add_parser(
+        "deploy", help="run a trained stack with each layer in a process of its own, against the clock",
+        epilog="writes DIR/<setting>.json, DIR/deploy.md and, over several settings, DIR/deploy.png; "
+        "how to read them: docs/distributed.md",
+    )
+    dp.add_argument("run_dir", type=Path, help="run directory of a trained run")
+    dp.add_argument("--speed", type=_speeds, metavar="X,Y,...|max",
+                    help="times real time, one setting per value; max: as fast as possible (default 1)")
+    dp.add_argument("--lockstep", action="store_true",
+                    help="also (or, without --speed, only) a setting in which the driver waits for every answer: "
+                    "it must execute layered eval's actions")
+    dp.add_argument("--episodes", type=_positive, default=3, help="episodes per setting (default 3)")
+    dp.add_argument("--link-delay", action="append", default=[], metavar="[LAYER=]5ms±2ms",
+                    help="delay each message to and from a layer (every layer without LAYER=); repeatable")
+    dp.add_argument("--fault", action="append", default=[], metavar="LAYER:die@N|LAYER:stall@N",
+                    help="make a layer's process die or stall at its N-th request; repeatable")
+    dp.add_argument("--on-fault", choices=FAULT_ACTIONS, default="hold",
+                    help="when a layer's process dies or stalls: go on with the slower layers' held outputs "
+                    "(default) or stop")
+    dp.add_argument("--weights", choices=["final", "best"],
+                    help="each phase's final or best weights (default: the recipe's train.select)")
+    dp.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
+    dp.add_argument("--out", type=Path, help="where to write (default RUN_DIR/deploy)")
+    _plugin_option(dp, "besides those the run was trained with")
     rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
     rep.add_argument("runs", type=Path, nargs="+", help="run directories, or folders that hold them")
     rep.add_argument("--out", type=Path, help="report directory (default runs/report-<time>)")
@@ -346,6 +374,57 @@ def _export(args: argparse.Namespace) -> int:
     return 0 if result.matches else 1
 
 
+def _deploy(args: argparse.Namespace) -> int:
+    from layered.deploy_run import deploy, table
+    from layered.run_evals import open_run
+
+    run = open_run(args.run_dir, args.weights, args.plugin)
+    try:
+        links = _per_layer(args.link_delay, "=", Link.parse, run.active, "--link-delay")
+        faults = _per_layer(args.fault, ":", Fault.parse, run.active, "--fault")
+    except ValueError as e:
+        return _fail(str(e))
+    speeds = args.speed or ([] if args.lockstep else [1.0])
+    settings = ([Settings(lockstep=True, links=links, faults=faults, on_fault=args.on_fault)] if args.lockstep
+                else []) + [Settings(speed, False, links, faults, args.on_fault) for speed in speeds]
+    out = args.out or args.run_dir / "deploy"
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(1)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(EXIT_SIGNAL["SIGTERM"]))  # so that every process is stopped
+    rows = deploy(run, settings, args.episodes, out, args.threshold)
+    print(table(rows))
+    print(f"written to {out}: deploy.md{', deploy.png' if len(rows) > 1 else ''} and one JSON file per setting")
+    stopped = args.on_fault == "stop" and any(row["faults"] for row in rows)
+    unequal = [row["setting"] for row in rows if row["lockstep"] and not row["same_actions_as_eval"]]
+    if unequal:
+        print("layered: lockstep did not execute layered eval's actions", file=sys.stderr)
+    return 1 if stopped or unequal else 0
+
+
+def _per_layer(values: list[str], separator: str, parse: Callable[[str], Any], layers: list[str], option: str) -> dict[str, Any]:
+    """`LAYER<sep>value` entries (or a bare value, for every layer) parsed per layer name."""
+    out = {}
+    for value in values:
+        name, found, text = value.partition(separator)
+        if not found and separator == "=":
+            out.update({layer: parse(value) for layer in layers})
+            continue
+        if not found or name not in layers:
+            raise ValueError(f"{option} {value!r}: name a layer of this stack ({', '.join(layers)}) as LAYER{separator}…")
+        out[name] = parse(text)
+    return out
+
+
+def _speeds(text: str) -> list[float | None]:
+    try:
+        speeds = [None if part.strip() == "max" else float(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected numbers or max, e.g. 1,2,5,10,max") from None
+    if any(speed is not None and not speed > 0 for speed in speeds):
+        raise argparse.ArgumentTypeError(f"{text!r}: a speed must be above 0")
+    return speeds
+
+
 def _installed(*modules: str) -> bool:
     import importlib.util
 
@@ -405,7 +484,8 @@ def _sweep(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
-COMMANDS = {"train": _train, "resume": _resume, "eval": _eval, "export": _export, "sweep": _sweep, "report": _report}
+COMMANDS = {"train": _train, "resume": _resume, "eval": _eval, "export": _export, "sweep": _sweep, "report": _report,
+            "deploy": _deploy}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -427,7 +507,7 @@ def main(argv: list[str] | None = None) -> int:
         for line in e.lines:
             print(f"layered: error: {line}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (CheckpointError, PluginError, RunDirError, ExportError, RenderingUnavailable) as e:
+    except (CheckpointError, PluginError, RunDirError, ExportError, RenderingUnavailable, LayerFault) as e:
         return _fail(str(e))
     except Stopped as e:
         print(f"layered: {e}", file=sys.stderr)

@@ -53,7 +53,7 @@ def count(n: int, noun: str) -> str:
     return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
     """matplotlib's pyplot, drawing off-screen; imported only when a figure is drawn (it is large)."""
     import matplotlib
 
@@ -86,7 +86,7 @@ def band(mean: Any, std: Any, lowest: Any = None, highest: Any = None) -> tuple[
 def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
     """Evaluation return against base steps, one line per phase, with ±1 std over episodes (clipped to
     the lowest and highest episode return)."""
-    plt = _pyplot()
+    plt = pyplot()
     with metrics_csv.open() as f:
         rows = list(csv.DictReader(f))
     fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
@@ -116,7 +116,7 @@ def _extremes(rows: Sequence[dict[str, Any]]) -> tuple[list[float] | None, list[
 def plot_episode(trace: Sequence[Any], layers: Sequence[str], out_png: Path, title: str) -> None:
     """One episode: above, when each layer decided (ticks) and contributed a non-zero part of the
     action (squares); below, the executed action per dimension."""
-    plt = _pyplot()
+    plt = pyplot()
     steps = range(len(trace))
     fig, (top, bottom) = plt.subplots(
         2, 1, figsize=(9, 2 + 0.4 * len(layers)), sharex=True, constrained_layout=True,
@@ -196,7 +196,7 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
     highest seed): over the last phase
     (what the AUC measures) and, when a setup trains in several phases, over the whole run, so
     that setups can be compared at the same number of environment steps."""
-    plt = _pyplot()
+    plt = pyplot()
     envs = list(dict.fromkeys(s.env for s in setups))
     phased = any(len(r.total_curve) > len(r.curve) for s in setups for r in s.runs)
     views = [(False, "environment steps (last phase)"), (True, "environment steps (whole run)")][: 1 + phased]
@@ -299,7 +299,7 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
 def plot_threshold_sweep(rows: Sequence[dict[str, Any]], out_png: Path, title: str) -> None:
     """Return (± std, clipped to the lowest and highest return) and action frequency (share of steps
     with a new action) against the threshold."""
-    plt = _pyplot()
+    plt = pyplot()
     x = [float(r["threshold"]) for r in rows]
     mean = np.array([float(r["return_mean"]) for r in rows])
     low, high = band(mean, np.array([float(r["return_std"]) for r in rows]), *_extremes(rows))
@@ -334,7 +334,7 @@ def _content(frames: np.ndarray, margin: int = 10) -> tuple[slice, slice]:
 def save_gallery(shots: Sequence[tuple[int, Any, Any]], layer: str, out_png: Path, title: str) -> None:
     """The rendered states in one row, each titled with its step, the layer's part of the action
     and the executed action."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, max(1, len(shots)), figsize=(2.2 * max(1, len(shots)), 3.2), squeeze=False,
                              layout="constrained")  # keeps the title clear of the frames' own titles
     for ax in axes[0]:

@@ -272,6 +272,21 @@ class Rules:
             outputs = landing
         self.held[i][...] = outputs if every else np.where(rows[:, None], outputs, self.held[i])
 
+    def amend(self, i: int, age: int, outputs: np.ndarray) -> str:
+        """Layer i's decision `age` decisions ago (0: its latest) was held or queued without its outputs,
+        which came late (a layer deployed as a process of its own): put `outputs` ([K, size]) in its place.
+        Still in flight, it lands as decided ('in flight'); landed and still held, it takes effect from now
+        ('late'); older, a newer decision already replaced it and nothing changes ('stale')."""
+        layer = self.layers[i]
+        if age > layer.delay:
+            return "stale"
+        outputs = clip(np.asarray(outputs, np.float32).reshape(self.rows, layer.size), layer.low, layer.high)
+        slot = self.held[i] if age == layer.delay else self.inflight[i][:, layer.delay - 1 - age]
+        if age == 0:  # its repeat count sets when it decides next
+            self.resume_at[i] += (layer.repeats(outputs) - layer.repeats(slot)) * layer.period
+        slot[...] = outputs
+        return "late" if age == layer.delay else "in flight"
+
     def decide_all(self, obs: np.ndarray, act: Act) -> dict[int, np.ndarray]:
         """Every decision of the current step in one pass down the stack, slowest layer first: each layer
         due in a row and not kept out there by a committed gate above it is given its observations and

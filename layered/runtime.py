@@ -126,8 +126,13 @@ def load_stack(directory: str | Path, backend: str | None = None) -> ExportedSta
         for plugin in spec.get("plugins", []):
             load_plugin(directory / plugin)
     backend = backend or spec["backend"]
+    policies = {name: load_policy(directory, name, backend) for name in spec["rules"]["active"]}
+    return ExportedStack(spec, policies)
+
+
+def load_policy(directory: str | Path, name: str, backend: str) -> Policy:
+    """Layer `name`'s exported policy in `directory`, loaded with `backend` (`torchscript` or `onnx`)."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
     suffix, load = BACKENDS[backend]
-    policies = {name: load(directory / f"{name}{suffix}") for name in spec["rules"]["active"]}
-    return ExportedStack(spec, policies)
+    return load(Path(directory) / f"{name}{suffix}")

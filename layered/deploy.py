@@ -1,0 +1,265 @@
+"""`layered deploy`: a trained stack with each layer in a process of its own, the environment on the clock.
+
+The driver owns the environment and the stack's rules (the exported `Rules`, the very rules of
+training, evaluation and the export). Base step t is due at T0 + t·h, h being the environment's
+timestep divided by the speed. Whenever the rules have a layer decide, the driver sends that layer's
+process what it sees and waits for the answer until the decision's deadline: the end of the base
+step at which it is to take effect (its own step for a layer without delay; d of its decisions
+later for a delay of d). An answer that misses its deadline is counted, the stack executes what was
+in effect (the layer's previous output held, or queued, in its place), and the answer takes effect
+from the first base step after it arrives, unless the layer has decided again meanwhile
+(`Rules.amend`). So the delayed setting's semantics hold, but the delays now come from the clock.
+
+`lockstep` waits for every answer at once, and acts as `layered eval` acts; `speed=None` (as fast as
+possible) runs base steps back to back and waits for each answer only when it is to take effect.
+A layer whose process dies, or leaves a request unanswered for one of its periods past the deadline,
+is a fault: the stack goes on without it (`hold`: the fastest layer then adds nothing, a slower one's
+last output stays in effect) or stops (`stop`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from layered.layer_process import Fault, LayerFault, LayerProcess, Link, Request, PROTOCOL
+from layered.rules import Rules
+
+STALL_FLOOR_S = 0.02  # the shortest stall a clocked layer is declared dead after: the OS may pause a process that long
+UNCLOCKED_STALL_S = 2.0  # lockstep and as fast as possible: how long an unanswered request may wait
+FAULT_ACTIONS = ("hold", "stop")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How a deployment runs: its clock, what is injected, what a fault does."""
+
+    speed: float | None = 1.0  # times real time; None: as fast as possible
+    lockstep: bool = False
+    links: Mapping[str, Link] = field(default_factory=dict)  # per layer name
+    faults: Mapping[str, Fault] = field(default_factory=dict)
+    on_fault: str = "hold"
+
+    @property
+    def label(self) -> str:
+        """A name for files and tables: `lockstep`, `1x`, `10x`, `max`, with the links it injects."""
+        clock = "lockstep" if self.lockstep else "max" if self.speed is None else f"{self.speed:g}x"
+        links = [f"{name}={link}" for name, link in sorted(self.links.items()) if link.mean_s]
+        return ",".join([clock, *links])
+
+
+@dataclass
+class Decision:
+    """One request to a layer and what became of it."""
+
+    layer: int
+    step: int  # the base step it decides for
+    sent: float  # monotonic seconds
+    deadline: float  # when it must have been answered: the end of the base step it is to take effect at
+    age: int = 0  # decisions of the layer since this one
+    answered: float | None = None
+    output: np.ndarray | None = None
+    compute_s: float | None = None
+    landed: int | None = None  # the base step from which it took effect
+    missed: bool = False  # not answered by its deadline
+
+    @property
+    def latency_s(self) -> float | None:
+        return None if self.answered is None else self.answered - self.sent
+
+
+@dataclass
+class Episode:
+    """One deployed episode."""
+
+    ret: float
+    actions: np.ndarray  # [steps, action dims], as executed
+    wall_s: float
+
+
+class Stop(RuntimeError):
+    """A fault under `on_fault="stop"`: the deployment ends."""
+
+
+class Driver:
+    """Steps an environment with the layers' processes under a clock, by the stack's rules."""
+
+    def __init__(self, rules: Rules, processes: Mapping[int, LayerProcess], timestep: float, settings: Settings,
+                 notify: Callable[[str], None] = print) -> None:
+        self.rules, self.processes, self.settings, self.notify = rules, dict(processes), settings, notify
+        self.clocked = not settings.lockstep and settings.speed is not None
+        self.h = timestep / settings.speed if self.clocked and settings.speed else 0.0
+        self.decisions: list[Decision] = []  # every request, for the summary
+        self.pending: dict[int, list[Decision]] = {i: [] for i in rules.active}  # not yet landed
+        self.faults: list[str] = []
+        self.dead: set[int] = set()
+        self.stash: list[tuple[int, Any]] = []  # answers that came while another was awaited: applied next step
+        self.episode = -1
+        self.t = 0
+        self.t0 = 0.0
+
+    def play(self, env: gym.Env, seed: int) -> Episode:
+        """One episode from `seed`: at each base step, every due layer is asked, the action composed and executed."""
+        obs, _ = env.reset(seed=seed)
+        self.rules.reset()
+        self.episode += 1
+        self.t, self.t0, total, actions = 0, time.monotonic(), 0.0, []
+        for queue in self.pending.values():
+            queue.clear()  # the previous episode's answers are ignored when they come
+        while True:
+            if self.clocked:
+                time.sleep(max(0.0, self.t0 + self.t * self.h - time.monotonic()))
+            self._collect()
+            self._await_landings()
+            self.rules.decide_all(np.asarray(obs, np.float32).reshape(1, -1), self._act)
+            action = self.rules.compose().action[0]
+            actions.append(action.copy())
+            obs, reward, terminated, truncated, _ = env.step(action)
+            total += float(reward)
+            self.rules.tick()
+            self.t += 1
+            if terminated or truncated:
+                return Episode(total, np.asarray(actions), time.monotonic() - self.t0)
+
+    def _deadline(self, i: int) -> float:
+        """The end of the base step at which layer i's decision of this step is to take effect."""
+        if not self.clocked:
+            return float("inf")
+        layer = self.rules.layers[i]
+        return self.t0 + (self.t + layer.delay * layer.period + 1) * self.h
+
+    def _stall_limit(self, i: int) -> float:
+        """How long past its deadline (clocked) or since it was sent (otherwise) a request may go unanswered."""
+        if not self.clocked:
+            return UNCLOCKED_STALL_S
+        return max(self.rules.layers[i].period * self.h, STALL_FLOOR_S)
+
+    def _act(self, i: int, view: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """`Rules.decide_all`'s callback: ask layer i's process, and return its answer, or what is in effect."""
+        layer = self.rules.layers[i]
+        placeholder = (self.rules.held[i] if layer.delay == 0 else self.rules.inflight[i][:, -1]).copy()
+        for decision in self.pending[i]:
+            self._age(decision)
+        self.pending[i] = [d for d in self.pending[i] if d.landed is None and d.age <= layer.delay]
+        if i in self.dead or (layer.learns_from_commits and not self.rules.compose().reached[i][0]):
+            return placeholder  # no process to ask, or kept out by a committed gate: the rules put the action there
+        decision = Decision(i, self.t, time.monotonic(), self._deadline(i))
+        self.decisions.append(decision)
+        self.pending[i].append(decision)
+        if not self._ask(i, Request(PROTOCOL, layer.name, self.episode, self.t, view[0])):
+            return placeholder
+        if layer.delay and not self.settings.lockstep:
+            return placeholder  # its answer is put in its place in flight when it comes (`_take`)
+        if self._wait(i, decision) and decision.output is not None:
+            if layer.delay == 0:
+                decision.landed = self.t
+            return decision.output.reshape(1, -1)
+        decision.missed = True
+        return placeholder
+
+    def _age(self, decision: Decision) -> None:
+        """Layer's next decision: one older; reaching its delay, it lands now, or is missed if unanswered."""
+        decision.age += 1
+        if decision.age == self.rules.layers[decision.layer].delay:
+            if decision.output is not None:
+                decision.landed = self.t
+            else:
+                decision.missed = True
+
+    def _ask(self, i: int, request: Request) -> bool:
+        try:
+            self.processes[i].send(request)
+            return True
+        except LayerFault as e:
+            self._fault(i, str(e))
+            return False
+
+    def _wait(self, i: int, decision: Decision) -> bool:
+        """Take layer i's answers until `decision`'s comes (True) or its deadline passes (False); other
+        answers that come meanwhile are kept to be applied at the next step."""
+        limit = decision.sent + UNCLOCKED_STALL_S if not self.clocked else decision.deadline
+        while decision.output is None:
+            remaining = limit - time.monotonic()
+            if remaining <= 0:
+                if not self.clocked:
+                    self._fault(i, f"layer {self.rules.layers[i].name!r} left step {decision.step}'s request "
+                                   f"unanswered for {UNCLOCKED_STALL_S:g} s: stalled")
+                return False
+            try:
+                reply = self.processes[i].receive(min(remaining, 0.05))
+            except LayerFault as e:
+                self._fault(i, str(e))
+                return False
+            if reply is not None and reply.episode == self.episode and reply.step == decision.step:
+                self._answer(decision, reply)
+            elif reply is not None:
+                self.stash.append((i, reply))
+        return True
+
+    def _answer(self, decision: Decision, reply: Any) -> None:
+        decision.answered = time.monotonic()
+        decision.output = np.asarray(reply.output, np.float32)
+        decision.compute_s = reply.compute_s
+
+    def _collect(self) -> None:
+        """Apply every answer that has come since the last step; notice processes that died or stalled."""
+        for i, reply in self.stash:
+            self._take(i, reply)
+        self.stash.clear()
+        now = time.monotonic()
+        for i in self.rules.active:
+            if i in self.dead:
+                continue
+            try:
+                while (reply := self.processes[i].receive(0.0)) is not None:
+                    self._take(i, reply)
+            except LayerFault as e:
+                self._fault(i, str(e))
+                continue
+            late = [d for d in self.pending[i] if d.output is None and now - d.deadline > self._stall_limit(i)]
+            if late and self.clocked:
+                self._fault(i, f"layer {self.rules.layers[i].name!r} left step {late[0].step}'s request unanswered "
+                               f"for one of its periods past its deadline ({self._stall_limit(i) * 1e3:.0f} ms): "
+                               "stalled")
+
+    def _take(self, i: int, reply: Any) -> None:
+        """A late answer, or one of a delayed layer: put it in its decision's place by the rules."""
+        if reply.episode != self.episode:
+            return
+        decision = next((d for d in self.pending[i] if d.step == reply.step and d.output is None), None)
+        if decision is None:
+            return  # its layer decided again before it came: dropped
+        self._answer(decision, reply)
+        if self.rules.amend(i, decision.age, decision.output) == "late":
+            decision.landed = self.t
+
+    def _await_landings(self) -> None:
+        """Before a delayed layer decides, wait (until its deadline) for the answer that lands then."""
+        for i in self.rules.active:
+            layer = self.rules.layers[i]
+            if not layer.delay or i in self.dead or not self.rules.due(i)[0]:
+                continue
+            landing = next((d for d in self.pending[i] if d.age == layer.delay - 1 and d.output is None), None)
+            if landing is not None and self._wait(i, landing) and landing.output is not None:
+                self.rules.amend(i, landing.age, landing.output)  # in flight still: it lands as this step's decision
+
+    def _fault(self, i: int, message: str) -> None:
+        """A layer's process died or stalled: stop it, then go on without it or stop, as the settings say."""
+        self.dead.add(i)
+        self.processes[i].close()
+        self.pending[i].clear()
+        where = f"at step {self.t} of episode {self.episode}"
+        if self.settings.on_fault == "stop":
+            self.faults.append(f"{message} {where}; stopping (--on-fault stop)")
+            self.notify(f"layered: {self.faults[-1]}")
+            raise Stop(self.faults[-1])
+        if i == self.rules.active[-1]:  # the fastest present layer: its correction goes
+            self.rules.held[i][...] = 0.0
+            self.rules.inflight[i][...] = 0.0
+        self.faults.append(f"{message} {where}; going on with the slower layers' held outputs (--on-fault hold)")
+        self.notify(f"layered: {self.faults[-1]}")

@@ -1,0 +1,246 @@
+"""One layer of an exported stack served by a process of its own, and the messages between it and the driver.
+
+The driver (`layered.deploy`) sends a `Request` with what the layer sees whenever the stack's rules
+have the layer decide; the layer's process answers with a `Reply` holding its policy's output. Both
+carry the protocol version, the episode and the base step the decision is for, so that a late answer
+is matched to its decision and an answer of another protocol is refused. Messages travel over a
+`multiprocessing` pipe (pickled; about 50 µs there and back). A `Link` delays each message by a
+seeded random amount, so that a network between the layers can be emulated on one machine; a `Fault`
+makes the process die or stall at a chosen decision, to test what the driver does then.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import re
+import signal
+import time
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
+
+import numpy as np
+
+PROTOCOL = 1  # of the messages below; a process refuses a request of another version, the driver a reply
+WARMUP_CALLS = 20  # untimed calls before the process says it is ready: TorchScript optimises over its first calls
+UNITS = {"us": 1e-6, "µs": 1e-6, "ms": 1e-3, "s": 1.0}
+
+
+class LayerFault(RuntimeError):
+    """A layer's process died, stalled or broke the protocol."""
+
+
+@dataclass(frozen=True)
+class Request:
+    """What layer `layer` sees before its decision for base `step` of `episode`."""
+
+    version: int
+    layer: str
+    episode: int
+    step: int
+    view: np.ndarray
+
+
+@dataclass(frozen=True)
+class Reply:
+    """A layer's output for its decision at base `step` of `episode`, and how long its policy took."""
+
+    version: int
+    layer: str
+    episode: int
+    step: int
+    output: np.ndarray
+    compute_s: float
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """A process's answer to a message it cannot take, after which it exits."""
+
+    version: int
+    layer: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class Link:
+    """A one-way delay of `mean_s` ± `jitter_s` (uniform) on each message to and from a layer."""
+
+    mean_s: float = 0.0
+    jitter_s: float = 0.0
+
+    @classmethod
+    def parse(cls, text: str) -> Link:
+        """`5ms`, `5ms±2ms` or `5ms+-2ms` (units us, ms, s)."""
+        parts = re.split(r"±|\+-", text.strip())
+        if not 1 <= len(parts) <= 2:
+            raise ValueError(f"link delay {text!r}: expected e.g. 5ms or 5ms±2ms")
+        seconds = [_seconds(part, text) for part in parts]
+        link = cls(seconds[0], seconds[1] if len(seconds) == 2 else 0.0)
+        if link.jitter_s > link.mean_s:
+            raise ValueError(f"link delay {text!r}: the jitter is larger than the mean, so a delay could be negative")
+        return link
+
+    def sample(self, rng: np.random.Generator) -> float:
+        """One message's delay in seconds."""
+        return self.mean_s + (rng.uniform(-self.jitter_s, self.jitter_s) if self.jitter_s else 0.0)
+
+    def __str__(self) -> str:
+        return f"{self.mean_s * 1e3:g}ms" + (f"±{self.jitter_s * 1e3:g}ms" if self.jitter_s else "")
+
+
+def _seconds(text: str, whole: str) -> float:
+    match = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*(us|µs|ms|s)\s*", text)
+    if match is None:
+        raise ValueError(f"link delay {whole!r}: {text.strip()!r} is not a duration such as 5ms, 200us or 0.1s")
+    return float(match.group(1)) * UNITS[match.group(2)]
+
+
+@dataclass(frozen=True)
+class Fault:
+    """Make the layer's process `die` (exit at once) or `stall` (stop answering) at its `decision`-th request."""
+
+    kind: str
+    decision: int
+
+    @classmethod
+    def parse(cls, text: str) -> Fault:
+        """`die@100` or `stall@100` (the 100th request, counted from 1 over the whole deployment)."""
+        match = re.fullmatch(r"(die|stall)@([1-9][0-9]*)", text.strip())
+        if match is None:
+            raise ValueError(f"fault {text!r}: expected die@N or stall@N (N a request, counted from 1)")
+        return cls(match.group(1), int(match.group(2)))
+
+
+def serve(connection: Connection, directory: str, backend: str, name: str, link: Link, fault: Fault | None,
+          seed: int) -> None:
+    """The layer process: load the policy, say it is ready, then answer requests until the driver hangs up."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops this process
+    import torch
+
+    from layered.runtime import load_policy
+
+    torch.set_num_threads(1)
+    policy = load_policy(directory, name, backend)
+    dims = int(_observation_dims(directory)[name])
+    for _ in range(WARMUP_CALLS):
+        policy(np.zeros(dims, np.float32))
+    rng = np.random.default_rng(seed)
+    connection.send(("ready", PROTOCOL, name, os.getpid()))
+    count = 0
+    while True:
+        try:
+            request = connection.recv()
+        except (EOFError, OSError):
+            return  # the driver is gone
+        if request is None:
+            return
+        if not isinstance(request, Request) or request.version != PROTOCOL:
+            version = getattr(request, "version", None)
+            connection.send(Refusal(PROTOCOL, name, f"a request of protocol version {version!r}; "
+                                                    f"this layer speaks version {PROTOCOL}"))
+            return
+        count += 1
+        if fault is not None and count >= fault.decision:
+            if fault.kind == "die":
+                os._exit(1)
+            _stall(connection)
+            return
+        _travel(link, rng)  # the request's way here
+        start = time.perf_counter()
+        output = np.asarray(policy(request.view), np.float32)
+        compute = time.perf_counter() - start
+        _travel(link, rng)  # the reply's way back
+        connection.send(Reply(PROTOCOL, name, request.episode, request.step, output, compute))
+
+
+def _stall(connection: Connection) -> None:
+    """Stay alive answering nothing, until the driver hangs up or is gone."""
+    while True:
+        if connection.poll(1.0):
+            try:
+                if connection.recv() is None:
+                    return
+            except (EOFError, OSError):
+                return
+
+
+def _travel(link: Link, rng: np.random.Generator) -> None:
+    """Hold a message for one sample of the link's delay."""
+    if link.mean_s:
+        time.sleep(link.sample(rng))
+
+
+def _observation_dims(directory: str) -> dict[str, int]:
+    import json
+
+    return json.loads((Path(directory) / "stack.json").read_text())["observation_dims"]
+
+
+class LayerProcess:
+    """The driver's end of one layer's process: start it, send requests, take replies, stop it."""
+
+    def __init__(self, name: str, directory: Path, backend: str, link: Link = Link(), fault: Fault | None = None,
+                 seed: int = 0) -> None:
+        context = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked torch or MuJoCo state
+        self.name = name
+        self.connection, child = context.Pipe()
+        self.process = context.Process(target=serve, args=(child, str(directory), backend, name, link, fault, seed),
+                                       name=f"layered-{name}", daemon=True)
+        self.process.start()
+        child.close()  # the child holds the only other end: its death is an end of file here at once
+        self.pid = self.process.pid
+
+    def wait_ready(self, timeout_s: float) -> None:
+        """Block until the process has loaded its policy; a process that fails to is a fault."""
+        if not self.connection.poll(timeout_s):
+            raise LayerFault(f"layer {self.name!r} did not start within {timeout_s:g} s")
+        message = self._receive()
+        if not (isinstance(message, tuple) and message[:2] == ("ready", PROTOCOL)):
+            raise LayerFault(f"layer {self.name!r} started with an unexpected message {message!r}")
+
+    def send(self, request: Request) -> None:
+        """Send a request; a process that is gone is a fault."""
+        try:
+            self.connection.send(request)
+        except (BrokenPipeError, ConnectionResetError, OSError):
+            raise LayerFault(f"layer {self.name!r} (pid {self.pid}) is gone: {self._how_it_ended()}") from None
+
+    def receive(self, timeout_s: float) -> Reply | None:
+        """The next reply within `timeout_s` (0: only one already here), or None."""
+        if not self.connection.poll(max(timeout_s, 0.0)):
+            return None
+        message = self._receive()
+        if isinstance(message, Refusal):
+            raise LayerFault(f"layer {self.name!r} refused {message.reason}")
+        if not isinstance(message, Reply) or message.version != PROTOCOL:
+            version = getattr(message, "version", None)
+            raise LayerFault(f"layer {self.name!r} sent a message of protocol version {version!r}; "
+                             f"this driver speaks version {PROTOCOL}")
+        return message
+
+    def _receive(self) -> object:
+        try:
+            return self.connection.recv()
+        except (EOFError, OSError):
+            raise LayerFault(f"layer {self.name!r} (pid {self.pid}) died: {self._how_it_ended()}") from None
+
+    def _how_it_ended(self) -> str:
+        self.process.join(0.5)
+        code = self.process.exitcode
+        if code is None:
+            return "its connection closed"
+        return f"killed by signal {-code}" if code < 0 else f"exit status {code}"
+
+    def close(self) -> None:
+        """Ask the process to exit; stop it if it does not within a second. Idempotent."""
+        try:
+            self.connection.send(None)
+        except (BrokenPipeError, ConnectionResetError, OSError):
+            pass
+        self.process.join(1.0)
+        if self.process.is_alive():
+            self.process.kill()
+            self.process.join()
+        self.connection.close()
