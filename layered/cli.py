@@ -525,6 +525,8 @@ def main(argv: list[str] | None = None) -> int:
 def _how_to_continue(args: argparse.Namespace) -> str:
     if args.command == "sweep":
         return "running the same sweep again resumes every run from its last checkpoint"
+    if args.command == "deploy":
+        return "every layer's process was stopped; the settings that finished are written"
     run = getattr(args, "out", None) or getattr(args, "run_dir", None)
     if run is not None and (run / "run.json").exists():
         return f"continue from the last checkpoint with: layered resume {run}"

@@ -20,6 +20,7 @@ last output stays in effect) or stops (`stop`).
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -99,6 +100,9 @@ class Driver:
         self.faults: list[str] = []
         self.dead: set[int] = set()
         self.stash: list[tuple[int, Any]] = []  # answers that came while another was awaited: applied next step
+        # per layer, the requests not yet answered, oldest first, as (episode, step, deadline): a process
+        # answers in order, so an answer settles every request before its own
+        self.outstanding: dict[int, deque[tuple[int, int, float]]] = {i: deque() for i in rules.active}
         self.episode = -1
         self.t = 0
         self.t0 = 0.0
@@ -174,6 +178,7 @@ class Driver:
     def _ask(self, i: int, request: Request) -> bool:
         try:
             self.processes[i].send(request)
+            self.outstanding[i].append((request.episode, request.step, self._deadline(i)))
             return True
         except LayerFault as e:
             self._fault(i, str(e))
@@ -191,7 +196,7 @@ class Driver:
                                    f"unanswered for {UNCLOCKED_STALL_S:g} s: stalled")
                 return False
             try:
-                reply = self.processes[i].receive(min(remaining, 0.05))
+                reply = self._receive(i, min(remaining, 0.05))
             except LayerFault as e:
                 self._fault(i, str(e))
                 return False
@@ -200,6 +205,15 @@ class Driver:
             elif reply is not None:
                 self.stash.append((i, reply))
         return True
+
+    def _receive(self, i: int, timeout_s: float) -> Any:
+        """Layer i's next answer within `timeout_s`, or None; it settles the requests before it."""
+        reply = self.processes[i].receive(timeout_s)
+        if reply is not None:
+            outstanding = self.outstanding[i]
+            while outstanding and outstanding.popleft()[:2] != (reply.episode, reply.step):
+                pass
+        return reply
 
     def _answer(self, decision: Decision, reply: Any) -> None:
         decision.answered = time.monotonic()
@@ -216,14 +230,14 @@ class Driver:
             if i in self.dead:
                 continue
             try:
-                while (reply := self.processes[i].receive(0.0)) is not None:
+                while (reply := self._receive(i, 0.0)) is not None:
                     self._take(i, reply)
             except LayerFault as e:
                 self._fault(i, str(e))
                 continue
-            late = [d for d in self.pending[i] if d.output is None and now - d.deadline > self._stall_limit(i)]
-            if late and self.clocked:
-                self._fault(i, f"layer {self.rules.layers[i].name!r} left step {late[0].step}'s request unanswered "
+            oldest = self.outstanding[i][0] if self.outstanding[i] else None
+            if self.clocked and oldest is not None and now - oldest[2] > self._stall_limit(i):
+                self._fault(i, f"layer {self.rules.layers[i].name!r} left step {oldest[1]}'s request unanswered "
                                f"for one of its periods past its deadline ({self._stall_limit(i) * 1e3:.0f} ms): "
                                "stalled")
 

@@ -1,0 +1,262 @@
+"""`layered deploy`: the layers of a stack as processes of their own. In lockstep they execute the actions
+of `layered eval`; against the clock, late answers take effect late by the rules; dead, stalled or
+foreign processes are noticed, reported in one line, and no process outlives the command."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from layered import load_recipe
+from layered.cli import main
+from layered import layer_process
+from layered.deploy import Decision, Episode, Settings
+from layered.deploy_measures import largest_difference, layer_measures, run_measures
+from layered.deploy_run import deploy
+from layered.layer_process import Fault, LayerFault, LayerProcess, Link, Request
+from layered.learner_set import build_learners
+from layered.rules import Layer, Rules
+from layered.run_evals import TrainedRun
+from layered.trainer import phases_of
+
+from test_export import STACKS, SMALL
+
+
+def untrained(path, overrides, tmp_path):
+    """A run of untrained learners: the rules and the processes, not the policies, are under test."""
+    recipe = load_recipe(path, SMALL + overrides)
+    return TrainedRun(tmp_path, recipe, build_learners(recipe), list(phases_of(recipe)[-1].active))
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+# --- the rules of a late answer -------------------------------------------------------------------------
+
+
+def one_layer(**kwargs):
+    low, high = np.array([-1.0], np.float32), np.array([1.0], np.float32)
+    size = 2 if kwargs.get("max_repeat", 1) > 1 else 1
+    layer = Layer("a", kwargs.pop("period", 1), np.array([-1.0, 1.0][:size], np.float32) if size == 2 else low,
+                  np.array([1.0, 3.0][:size], np.float32) if size == 2 else high, **kwargs)
+    return Rules([layer], [0], low, high)
+
+
+def test_a_late_answer_in_flight_lands_as_decided_then_late_then_is_stale():
+    rules = one_layer(delay=1)
+    rules.decide(0, np.array([[0.5]]))  # step 0: a placeholder goes in flight, the zero output lands
+    assert rules.amend(0, 0, np.array([[0.7]])) == "in flight"
+    assert rules.held[0][0, 0] == 0.0
+    rules.tick()
+    rules.decide(0, np.array([[0.1]]))  # step 1: the amended 0.7 lands
+    assert rules.held[0][0, 0] == pytest.approx(0.7)
+    assert rules.amend(0, 1, np.array([[0.9]])) == "late"  # the decision that landed, answered only now
+    assert rules.held[0][0, 0] == pytest.approx(0.9)
+    assert rules.inflight[0][0, 0, 0] == pytest.approx(0.1)
+    assert rules.amend(0, 2, np.array([[-0.9]])) == "stale"
+    assert rules.held[0][0, 0] == pytest.approx(0.9)
+
+
+def test_a_late_answer_without_delay_is_held_at_once_and_clipped_and_resets_its_repeat():
+    rules = one_layer(max_repeat=3)
+    rules.decide(0, np.array([[0.2, 1.0]]))  # a placeholder repeating once: decides again at step 1
+    assert rules.resume_at[0][0] == 1
+    assert rules.amend(0, 0, np.array([[5.0, 3.0]])) == "late"
+    assert rules.held[0][0].tolist() == [1.0, 3.0]  # clipped to the layer's bounds
+    assert rules.resume_at[0][0] == 3  # the answer repeats three periods
+    assert rules.amend(0, 1, np.array([[0.0, 1.0]])) == "stale"
+
+
+# --- measures, by hand ----------------------------------------------------------------------------------
+
+
+def test_layer_measures_count_misses_late_dropped_and_the_delays_seen():
+    decisions = [
+        Decision(0, step=0, sent=0.0, deadline=1.0, answered=0.001, compute_s=0.0005, landed=0),  # on time
+        Decision(0, step=1, sent=1.0, deadline=2.0, answered=1.003, compute_s=0.0005, landed=3, missed=True),
+        Decision(0, step=2, sent=2.0, deadline=3.0, missed=True),  # never answered in time to land: dropped
+        Decision(0, step=3, sent=3.0, deadline=4.0),  # the episode ended with it in flight: not settled
+    ]
+    m = layer_measures(decisions, scheduled=0)
+    assert (m["requests"], m["answered"], m["settled"], m["missed"], m["late"], m["dropped"]) == (4, 2, 3, 2, 1, 1)
+    assert m["miss_rate"] == pytest.approx(2 / 3)
+    assert m["latency_ms"]["median"] == pytest.approx(2.0)  # of 1 ms and 3 ms
+    assert m["latency_ms"]["p99"] == pytest.approx(1 + 2 * 0.99)
+    assert m["delay_seen"] == {"0": 1, "2": 1}
+    assert m["mean_delay_seen"] == pytest.approx(1.0)
+
+
+def test_run_measures_and_action_differences():
+    episodes = [Episode(-10.0, np.zeros((4, 1)), 0.2), Episode(-20.0, np.zeros((6, 1)), 0.3)]
+    m = run_measures(episodes, timestep=0.05)
+    assert (m["return_mean"], m["return_std"], m["steps"]) == (-15.0, 5.0, 10)
+    assert m["steps_per_s"] == pytest.approx(20.0)
+    assert m["real_time_factor"] == pytest.approx(1.0)  # 10 steps of 0.05 s in 0.5 s
+    assert largest_difference([np.array([[0.5], [1.0]])], [np.array([[0.25], [1.0]])]) == 0.25
+    assert largest_difference([np.zeros((2, 1))], [np.zeros((3, 1))]) == float("inf")
+
+
+@pytest.mark.parametrize(("text", "mean", "jitter"), [("5ms", 5e-3, 0.0), ("5ms±2ms", 5e-3, 2e-3),
+                                                      ("0.1s+-500us", 0.1, 5e-4)])
+def test_link_delays_parse(text, mean, jitter):
+    link = Link.parse(text)
+    assert (link.mean_s, link.jitter_s) == pytest.approx((mean, jitter))
+    samples = [link.sample(np.random.default_rng(k)) for k in range(50)]
+    assert min(samples) >= mean - jitter and max(samples) <= mean + jitter
+
+
+@pytest.mark.parametrize("text", ["5", "5ms±6ms", "fast", "-1ms"])
+def test_bad_link_delays_are_refused(text):
+    with pytest.raises(ValueError, match="link delay"):
+        Link.parse(text)
+
+
+def test_faults_parse():
+    assert Fault.parse("die@3") == Fault("die", 3)
+    assert Fault.parse("stall@10") == Fault("stall", 10)
+    with pytest.raises(ValueError, match="die@N or stall@N"):
+        Fault.parse("hang@3")
+
+
+# --- lockstep equals eval -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", list(STACKS))
+def test_lockstep_executes_the_actions_of_layered_eval(name, tmp_path):
+    run = untrained(*STACKS[name], tmp_path)
+    [row] = deploy(run, [Settings(lockstep=True)], episodes=2, out=tmp_path / "deploy", notify=lambda _: None)
+    assert row["steps"] >= 15  # untrained, the double pendulum falls within about 8 steps per episode
+    assert row["max_action_difference"] == 0.0 and row["same_actions_as_eval"]
+    assert row["returns"] == row["eval_returns"]
+    assert all(layer["missed"] == 0 and layer["requests"] == layer["answered"] for layer in row["layers"].values())
+    delays = {name: layer["scheduled_delay"] for name, layer in row["layers"].items()}
+    assert all(set(layer["delay_seen"]) <= {str(delays[name])} for name, layer in row["layers"].items())
+    assert not any(_alive(pid) for pid in row["pids"])
+
+
+def test_against_the_clock_every_decision_is_settled_and_seen_no_earlier_than_trained(tmp_path):
+    run = untrained("inverted-double-pendulum/tla-realtime.toml", [], tmp_path)
+    [row] = deploy(run, [Settings(speed=4.0)], episodes=2, out=tmp_path / "deploy", notify=lambda _: None)
+    assert row["completed"] and row["real_time_factor"] == pytest.approx(4.0, rel=0.5)
+    for layer in row["layers"].values():
+        assert layer["settled"] >= layer["requests"] - 2 * 2  # at most one in flight per episode end and layer
+        assert all(int(k) >= layer["scheduled_delay"] for k in layer["delay_seen"])
+        assert layer["latency_ms"]["median"] < 1e3 * layer["period_s"]
+
+
+# --- faults ---------------------------------------------------------------------------------------------
+
+
+def test_a_layer_that_dies_is_reported_and_the_stack_goes_on_without_it(tmp_path):
+    run = untrained("pendulum/tla-c.toml", [], tmp_path)
+    lines = []
+    [row] = deploy(run, [Settings(lockstep=True, faults={"fast": Fault("die", 30)})], episodes=2,
+                   out=tmp_path / "deploy", notify=lines.append)
+    assert len(lines) == 2 and "layer 'fast'" in lines[0] and "died" in lines[0] and "going on" in lines[0]
+    assert row["episodes"] == 2 and len(row["faults"]) == 1 and not row["completed"]
+    assert row["layers"]["fast"]["requests"] == 30
+    assert not any(_alive(pid) for pid in row["pids"])
+
+
+def test_a_stalled_layer_is_noticed_within_its_period_and_stop_ends_the_deployment(tmp_path):
+    run = untrained("pendulum/tla-c.toml", [], tmp_path)
+    lines = []
+    speed = 2.5  # base steps of 20 ms: the fast layer's period, and the floor of a stall
+    [row] = deploy(run, [Settings(speed=speed, faults={"fast": Fault("stall", 20)}, on_fault="stop")],
+                   episodes=2, out=tmp_path / "deploy", notify=lines.append)
+    assert len(lines) == 2 and "stalled" in lines[0] and "stopping" in lines[0]
+    assert row["episodes"] == 0 and len(row["faults"]) == 1
+    noticed = int(lines[0].split(" at step ")[1].split()[0])
+    # the 20th request is step 19's; its deadline is the end of step 19, a stall one period (one step) past it
+    assert 20 <= noticed <= 19 + 1 + 1 + 3  # (and up to 3 steps of the OS's scheduling)
+    assert not any(_alive(pid) for pid in row["pids"])
+
+
+def test_a_message_of_another_protocol_version_is_refused_both_ways(tmp_path, monkeypatch):
+    run = untrained("pendulum/tla-c.toml", [], tmp_path)
+    from layered.export import export_stack
+
+    directory = export_stack(run.recipe, run.learners, run.active, tmp_path / "export", "torchscript")
+    process = LayerProcess("fast", directory, "torchscript")
+    process.wait_ready(60)
+    view = np.zeros(json.loads((directory / "stack.json").read_text())["observation_dims"]["fast"], np.float32)
+    monkeypatch.setattr(layer_process, "PROTOCOL", 2)  # the driver now speaks version 2, the process version 1
+    process.send(Request(1, "fast", 0, 0, view))
+    with pytest.raises(LayerFault, match="protocol version 1; this driver speaks version 2"):
+        process.receive(10)
+    process.send(Request(2, "fast", 0, 1, view))
+    with pytest.raises(LayerFault, match="refused a request of protocol version 2; this layer speaks version 1"):
+        process.receive(10)
+    process.process.join(5)
+    assert process.process.exitcode == 0  # it refused and left
+    process.close()
+
+
+# --- the command ----------------------------------------------------------------------------------------
+
+
+def test_deploy_command_writes_what_it_prints_and_leaves_no_process(tmp_path, tiny, capsys):
+    out = tmp_path / "run"
+    assert main(["train", "pendulum/tla-c.toml", "--out", str(out), "--steps", "200", *tiny]) == 0
+    capsys.readouterr()
+    assert main(["deploy", str(out), "--lockstep", "--speed", "max", "--episodes", "1",
+                 "--link-delay", "slow=1ms±0.5ms", "--out", str(tmp_path / "d")]) == 0
+    printed = capsys.readouterr().out
+    rows = [json.loads((tmp_path / "d" / f"{label}.json").read_text()) for label in ("lockstep,slow=1ms±0.5ms",
+                                                                                    "max,slow=1ms±0.5ms")]
+    assert rows[0]["same_actions_as_eval"] and rows[1]["same_actions_as_eval"]  # neither has a deadline
+    assert rows[0]["layers"]["slow"]["latency_ms"]["median"] >= 1.0  # the link's two ways, 0.5 ms at least each
+    assert f"{rows[1]['return_mean']:.1f}" in printed and (tmp_path / "d" / "deploy.png").exists()
+    assert (tmp_path / "d" / "deploy.md").read_text().strip() in printed
+    assert not any(_alive(pid) for row in rows for pid in row["pids"])
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--link-delay", "mid=5ms"], "name a layer of this stack (slow, fast)"),
+    (["--fault", "fast:hang@3"], "die@N or stall@N"),
+    (["--link-delay", "5"], "is not a duration"),
+])
+def test_bad_deploy_options_are_refused_in_one_line(tmp_path, tiny, capsys, args, message):
+    out = tmp_path / "run"
+    assert main(["train", "pendulum/tla-c.toml", "--out", str(out), "--steps", "150", *tiny]) == 0
+    capsys.readouterr()
+    assert main(["deploy", str(out), *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (out / "deploy").exists()
+
+
+def test_ctrl_c_stops_the_driver_and_every_layer_process(tmp_path, tiny):
+    out = tmp_path / "run"
+    assert main(["train", "pendulum/tla-c.toml", "--out", str(out), "--steps", "150", *tiny]) == 0
+    command = [sys.executable, "-m", "layered.cli", "deploy", str(out), "--speed", "1", "--episodes", "20"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not (out / "deploy" / "export-torchscript" / "stack.json").exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    time.sleep(8)  # the layers' processes start (a few seconds) and play
+    os.killpg(process.pid, signal.SIGINT)  # as Ctrl-C at a terminal: the whole foreground group
+    _, err = process.communicate(timeout=30)
+    assert process.returncode == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("layered: stopped")
+    assert "every layer's process was stopped" in err
+    deadline = time.monotonic() + 10  # multiprocessing's resource tracker leaves when it sees the driver gone
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(process.pid, 0)
+        except ProcessLookupError:
+            break  # no process of its group is left
+        time.sleep(0.1)
+    else:
+        pytest.fail("a process of the deployment outlived it")
