@@ -199,6 +199,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="each phase's final or best weights (default: the recipe's train.select)")
     dp.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
     dp.add_argument("--out", type=Path, help="where to write (default RUN_DIR/deploy)")
+    dp.add_argument("--transport", choices=["process", "ray"], default="process",
+                    help="each layer a local process (default) or a Ray actor (extra layered-control[ray])")
+    dp.add_argument("--address", help="with --transport ray: the Ray cluster's address (default: start a local Ray)")
     _plugin_option(dp, "besides those the run was trained with")
     rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
     rep.add_argument("runs", type=Path, nargs="+", help="run directories, or folders that hold them")
@@ -391,17 +394,25 @@ def _deploy(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(EXIT_SIGNAL["SIGTERM"]))  # so that every process is stopped
-    rows = deploy(run, settings, args.episodes, out, args.threshold)
+    if args.address and args.transport != "ray":
+        return _fail("--address names a Ray cluster: give it with --transport ray")
+    try:
+        rows = deploy(run, settings, args.episodes, out, args.threshold, transport=args.transport,
+                      address=args.address)
+    except RuntimeError as e:  # Ray is not installed
+        return _fail(str(e))
     print(table(rows))
     print(f"written to {out}: deploy.md{', deploy.png' if len(rows) > 1 else ''} and one JSON file per setting")
     stopped = args.on_fault == "stop" and any(row["faults"] for row in rows)
-    unequal = [row["setting"] for row in rows if row["lockstep"] and not row["same_actions_as_eval"]]
+    unequal = [row["setting"] for row in rows
+               if row["lockstep"] and not row["faults"] and not row["same_actions_as_eval"]]
     if unequal:
         print("layered: lockstep did not execute layered eval's actions", file=sys.stderr)
     return 1 if stopped or unequal else 0
 
 
-def _per_layer(values: list[str], separator: str, parse: Callable[[str], Any], layers: list[str], option: str) -> dict[str, Any]:
+def _per_layer(values: list[str], separator: str, parse: Callable[[str], Any], layers: list[str],
+               option: str) -> dict[str, Any]:
     """`LAYER<sep>value` entries (or a bare value, for every layer) parsed per layer name."""
     out = {}
     for value in values:
@@ -410,7 +421,8 @@ def _per_layer(values: list[str], separator: str, parse: Callable[[str], Any], l
             out.update({layer: parse(value) for layer in layers})
             continue
         if not found or name not in layers:
-            raise ValueError(f"{option} {value!r}: name a layer of this stack ({', '.join(layers)}) as LAYER{separator}…")
+            raise ValueError(f"{option} {value!r}: name a layer of this stack ({', '.join(layers)}) "
+                             f"as LAYER{separator}…")
         out[name] = parse(text)
     return out
 

@@ -28,7 +28,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from layered.layer_process import Fault, LayerFault, LayerProcess, Link, Request, PROTOCOL
+from layered.layer_process import PROTOCOL, Fault, LayerEnd, LayerFault, Link, Request
 from layered.rules import Rules
 
 STALL_FLOOR_S = 0.02  # the shortest stall a clocked layer is declared dead after: the OS may pause a process that long
@@ -90,7 +90,7 @@ class Stop(RuntimeError):
 class Driver:
     """Steps an environment with the layers' processes under a clock, by the stack's rules."""
 
-    def __init__(self, rules: Rules, processes: Mapping[int, LayerProcess], timestep: float, settings: Settings,
+    def __init__(self, rules: Rules, processes: Mapping[int, LayerEnd], timestep: float, settings: Settings,
                  notify: Callable[[str], None] = print) -> None:
         self.rules, self.processes, self.settings, self.notify = rules, dict(processes), settings, notify
         self.clocked = not settings.lockstep and settings.speed is not None
@@ -147,9 +147,12 @@ class Driver:
         """`Rules.decide_all`'s callback: ask layer i's process, and return its answer, or what is in effect."""
         layer = self.rules.layers[i]
         placeholder = (self.rules.held[i] if layer.delay == 0 else self.rules.inflight[i][:, -1]).copy()
+        late = [d for d in self.pending[i] if d.missed and d.landed == self.t]  # put in place at this step's start
         for decision in self.pending[i]:
             self._age(decision)
         self.pending[i] = [d for d in self.pending[i] if d.landed is None and d.age <= layer.delay]
+        if layer.delay:
+            _never_executed(late)  # this decision moves the queue on: the next output in flight is held instead
         if i in self.dead or (layer.learns_from_commits and not self.rules.compose().reached[i][0]):
             return placeholder  # no process to ask, or kept out by a committed gate: the rules put the action there
         decision = Decision(i, self.t, time.monotonic(), self._deadline(i))
@@ -162,6 +165,7 @@ class Driver:
         if self._wait(i, decision) and decision.output is not None:
             if layer.delay == 0:
                 decision.landed = self.t
+                _never_executed(late)  # replaced by this answer, on time, before any action was composed
             return decision.output.reshape(1, -1)
         decision.missed = True
         return placeholder
@@ -249,7 +253,7 @@ class Driver:
         if decision is None:
             return  # its layer decided again before it came: dropped
         self._answer(decision, reply)
-        if self.rules.amend(i, decision.age, decision.output) == "late":
+        if self.rules.amend(i, decision.age, reply.output) == "late":
             decision.landed = self.t
 
     def _await_landings(self) -> None:
@@ -277,3 +281,10 @@ class Driver:
             self.rules.inflight[i][...] = 0.0
         self.faults.append(f"{message} {where}; going on with the slower layers' held outputs (--on-fault hold)")
         self.notify(f"layered: {self.faults[-1]}")
+
+
+def _never_executed(decisions: list[Decision]) -> None:
+    """These late answers were replaced at the step they were put in place, before they were executed:
+    they count as dropped, not as taking effect."""
+    for decision in decisions:
+        decision.landed = None

@@ -4,7 +4,7 @@ A decision is *missed* when its answer had not come by its deadline (the end of 
 which it was to take effect); a missed decision that came before its layer decided again took
 effect late, one that did not was *dropped*. The *delay seen* of a decision that took effect is the
 number of base steps from the step it was decided for to the first step it was in effect: the
-layer's trained delay (delay × period) when on time, more when late.
+layer's trained delay (delay x period) when on time, more when late.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ def percentiles_ms(seconds: Sequence[float]) -> dict[str, float | None]:
 
 def layer_measures(decisions: Sequence[Decision], scheduled: int) -> dict[str, Any]:
     """One layer's requests: how many, how fast answered, missed, late, dropped, and the delays seen;
-    `scheduled` is the layer's delay in base steps (delay × period), what an answer on time sees."""
+    `scheduled` is the layer's delay in base steps (delay x period), what an answer on time sees."""
     settled = [d for d in decisions if d.missed or d.landed is not None]  # reached the step they were due at
     missed = sum(d.missed for d in settled)
     late = sum(d.missed and d.landed is not None for d in settled)

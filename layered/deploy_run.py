@@ -18,7 +18,8 @@ from layered.envs import control_timestep, make_env
 from layered.evaluate import run_episode
 from layered.export import export_stack
 from layered.latency import TOLERANCE
-from layered.layer_process import LayerProcess, Link
+from layered.layer_process import LayerEnd, LayerProcess, Link
+from layered.ray_cluster import start_ray
 from layered.report import pyplot
 from layered.rules import Rules
 from layered.run_evals import TrainedRun
@@ -37,27 +38,45 @@ def library_episodes(run: TrainedRun, episodes: int, threshold: float | None) ->
     return played
 
 
-def start_layers(rules: Rules, directory: Path, settings: Settings, seed: int) -> dict[int, LayerProcess]:
-    """One process per present layer, each with its link and fault, ready to answer."""
-    processes: dict[int, LayerProcess] = {}
+def start_layers(rules: Rules, directory: Path, settings: Settings, seed: int,
+                 transport: str = "process") -> dict[int, LayerEnd]:
+    """One process (or Ray actor) per present layer, each with its link and fault, ready to answer."""
+    kind: Any = LayerProcess
+    if transport == "ray":
+        from layered.layer_ray import RayLayer
+
+        kind = RayLayer
+    ends: dict[int, LayerEnd] = {}
     try:
         for i in rules.active:
             name = rules.layers[i].name
-            processes[i] = LayerProcess(name, directory, "torchscript", settings.links.get(name, Link()),
-                                        settings.faults.get(name), seed * 1000 + i)
-        for process in processes.values():
-            process.wait_ready(START_TIMEOUT_S)
+            ends[i] = kind(name, directory, "torchscript", settings.links.get(name, Link()), settings.faults.get(name),
+                           seed * 1000 + i)
+        for end in ends.values():
+            end.wait_ready(START_TIMEOUT_S)
     except BaseException:
-        for process in processes.values():
-            process.close()
+        for end in ends.values():
+            end.close()
         raise
-    return processes
+    return ends
 
 
 def deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: Path, threshold: float | None = None,
-           notify: Callable[[str], None] = print) -> list[dict[str, Any]]:
-    """Deploy `run` under each of `settings` for `episodes` episodes; one row of measures per setting,
-    each also written to `out/<label>.json`."""
+           notify: Callable[[str], None] = print, transport: str = "process",
+           address: str | None = None) -> list[dict[str, Any]]:
+    """Deploy `run` under each of `settings` for `episodes` episodes, its layers carried by `transport`
+    (Ray: on the cluster at `address`, default a local one); one row of measures per setting, each also
+    written to `out/<label>.json`."""
+    ray = start_ray(address) if transport == "ray" else None
+    try:
+        return _deploy(run, settings, episodes, out, threshold, notify, transport)
+    finally:
+        if ray is not None:
+            ray.shutdown()
+
+
+def _deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: Path, threshold: float | None,
+            notify: Callable[[str], None], transport: str) -> list[dict[str, Any]]:
     directory = export_stack(run.recipe, run.learners, run.active, out / "export-torchscript", "torchscript",
                              threshold)
     rules = Rules.from_json(json.loads((directory / "stack.json").read_text())["rules"])
@@ -68,7 +87,7 @@ def deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: Pa
     rows = []
     try:
         for setting in settings:
-            processes = start_layers(rules, directory, setting, run.seed)
+            processes = start_layers(rules, directory, setting, run.seed, transport)
             driver = Driver(rules, processes, timestep, setting, notify)
             played = []
             try:
@@ -116,12 +135,12 @@ def _row(run: TrainedRun, setting: Settings, driver: Driver, played: list[Any],
 
 
 def _ms(value: float | None) -> str:
-    return "–" if value is None else f"{value:.2f}"
+    return "-" if value is None else f"{value:.2f}"
 
 
 def table(rows: Sequence[dict[str, Any]]) -> str:
     """The measures as a markdown table: one line per setting and layer."""
-    lines = ["| setting | return (deployed) | return (eval) | same actions | steps/s | × real time | layer "
+    lines = ["| setting | return (deployed) | return (eval) | same actions | steps/s | x real time | layer "
              "| latency median / p99 ms | missed | late | dropped | delay seen (steps) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
@@ -134,7 +153,7 @@ def table(rows: Sequence[dict[str, Any]]) -> str:
             seen = layer["mean_delay_seen"]
             lines.append(f"{head}| {name} | {_ms(layer['latency_ms']['median'])} / {_ms(layer['latency_ms']['p99'])} "
                          f"| {layer['missed']} of {layer['settled']} | {layer['late']} | {layer['dropped']} | "
-                         f"{'–' if seen is None else f'{seen:.2f}'} (trained {layer['scheduled_delay']}) |")
+                         f"{'-' if seen is None else f'{seen:.2f}'} (trained {layer['scheduled_delay']}) |")
             first = False
     return "\n".join(lines)
 

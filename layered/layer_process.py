@@ -11,6 +11,7 @@ makes the process die or stall at a chosen decision, to test what the driver doe
 
 from __future__ import annotations
 
+import json
 import multiprocessing
 import os
 import re
@@ -19,6 +20,7 @@ import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -113,22 +115,65 @@ class Fault:
         return cls(match.group(1), int(match.group(2)))
 
 
+class Server:
+    """A layer's policy answering requests, with its link's delays and the fault it is to inject."""
+
+    def __init__(self, directory: str | Path, backend: str, name: str, link: Link, fault: Fault | None,
+                 seed: int) -> None:
+        import torch
+
+        from layered.runtime import load_policy
+
+        torch.set_num_threads(1)
+        self.name, self.link, self.fault = name, link, fault
+        self.policy = load_policy(directory, name, backend)
+        dims = int(json.loads((Path(directory) / "stack.json").read_text())["observation_dims"][name])
+        for _ in range(WARMUP_CALLS):
+            self.policy(np.zeros(dims, np.float32))
+        self.rng = np.random.default_rng(seed)
+        self.count = 0
+
+    def answer(self, request: object) -> Reply | Refusal | None:
+        """The reply to `request`; a refusal for a message of another protocol; None once stalled."""
+        if not isinstance(request, Request) or request.version != PROTOCOL:
+            version = getattr(request, "version", None)
+            return Refusal(PROTOCOL, self.name, f"a request of protocol version {version!r}; "
+                                                f"this layer speaks version {PROTOCOL}")
+        self.count += 1
+        if self.fault is not None and self.count >= self.fault.decision:
+            if self.fault.kind == "die":
+                os._exit(1)
+            return None
+        self._travel()  # the request's way here
+        start = time.perf_counter()
+        output = np.asarray(self.policy(request.view), np.float32)
+        compute = time.perf_counter() - start
+        self._travel()  # the reply's way back
+        return Reply(PROTOCOL, self.name, request.episode, request.step, output, compute)
+
+    def _travel(self) -> None:
+        """Hold a message for one sample of the link's delay."""
+        if self.link.mean_s:
+            time.sleep(self.link.sample(self.rng))
+
+
+def check_reply(name: str, message: object) -> Reply:
+    """A layer's message as a reply of this protocol; anything else is a fault."""
+    if isinstance(message, Refusal):
+        raise LayerFault(f"layer {name!r} refused {message.reason}")
+    if not isinstance(message, Reply) or message.version != PROTOCOL:
+        version = getattr(message, "version", None)
+        raise LayerFault(f"layer {name!r} sent a message of protocol version {version!r}; "
+                         f"this driver speaks version {PROTOCOL}")
+    return message
+
+
 def serve(connection: Connection, directory: str, backend: str, name: str, link: Link, fault: Fault | None,
           seed: int) -> None:
     """The layer process: load the policy, say it is ready, then answer requests until the driver hangs up."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops this process
-    import torch
-
-    from layered.runtime import load_policy
-
-    torch.set_num_threads(1)
-    policy = load_policy(directory, name, backend)
-    dims = int(_observation_dims(directory)[name])
-    for _ in range(WARMUP_CALLS):
-        policy(np.zeros(dims, np.float32))
-    rng = np.random.default_rng(seed)
+    server = Server(directory, backend, name, link, fault, seed)
     connection.send(("ready", PROTOCOL, name, os.getpid()))
-    count = 0
     while True:
         try:
             request = connection.recv()
@@ -136,23 +181,13 @@ def serve(connection: Connection, directory: str, backend: str, name: str, link:
             return  # the driver is gone
         if request is None:
             return
-        if not isinstance(request, Request) or request.version != PROTOCOL:
-            version = getattr(request, "version", None)
-            connection.send(Refusal(PROTOCOL, name, f"a request of protocol version {version!r}; "
-                                                    f"this layer speaks version {PROTOCOL}"))
-            return
-        count += 1
-        if fault is not None and count >= fault.decision:
-            if fault.kind == "die":
-                os._exit(1)
+        reply = server.answer(request)
+        if reply is None:
             _stall(connection)
             return
-        _travel(link, rng)  # the request's way here
-        start = time.perf_counter()
-        output = np.asarray(policy(request.view), np.float32)
-        compute = time.perf_counter() - start
-        _travel(link, rng)  # the reply's way back
-        connection.send(Reply(PROTOCOL, name, request.episode, request.step, output, compute))
+        connection.send(reply)
+        if isinstance(reply, Refusal):
+            return
 
 
 def _stall(connection: Connection) -> None:
@@ -166,16 +201,16 @@ def _stall(connection: Connection) -> None:
                 return
 
 
-def _travel(link: Link, rng: np.random.Generator) -> None:
-    """Hold a message for one sample of the link's delay."""
-    if link.mean_s:
-        time.sleep(link.sample(rng))
+class LayerEnd(Protocol):
+    """The driver's end of a layer, whatever carries its messages (a process's pipe, a Ray actor)."""
 
+    name: str
+    pid: int | None
 
-def _observation_dims(directory: str) -> dict[str, int]:
-    import json
-
-    return json.loads((Path(directory) / "stack.json").read_text())["observation_dims"]
+    def wait_ready(self, timeout_s: float) -> None: ...
+    def send(self, request: Request) -> None: ...
+    def receive(self, timeout_s: float) -> Reply | None: ...
+    def close(self) -> None: ...
 
 
 class LayerProcess:
@@ -190,7 +225,7 @@ class LayerProcess:
                                        name=f"layered-{name}", daemon=True)
         self.process.start()
         child.close()  # the child holds the only other end: its death is an end of file here at once
-        self.pid = self.process.pid
+        self.pid: int | None = self.process.pid
 
     def wait_ready(self, timeout_s: float) -> None:
         """Block until the process has loaded its policy; a process that fails to is a fault."""
@@ -211,14 +246,7 @@ class LayerProcess:
         """The next reply within `timeout_s` (0: only one already here), or None."""
         if not self.connection.poll(max(timeout_s, 0.0)):
             return None
-        message = self._receive()
-        if isinstance(message, Refusal):
-            raise LayerFault(f"layer {self.name!r} refused {message.reason}")
-        if not isinstance(message, Reply) or message.version != PROTOCOL:
-            version = getattr(message, "version", None)
-            raise LayerFault(f"layer {self.name!r} sent a message of protocol version {version!r}; "
-                             f"this driver speaks version {PROTOCOL}")
-        return message
+        return check_reply(self.name, self._receive())
 
     def _receive(self) -> object:
         try:

@@ -25,6 +25,7 @@ import tomli_w
 from tqdm import tqdm
 
 from layered.interrupt import SIGNAL_NAMES
+from layered.ray_cluster import start_ray
 from layered.overrides import grid
 from layered.plugins import load_plugins
 from layered.recipe import RecipeError, load_recipe, recipe_path, resolved
@@ -305,13 +306,7 @@ def run_ray(jobs: Sequence[Job], address: str | None = None) -> list[Outcome]:
     Each task gets the files its run directory holds here, so a stopped run resumes from the
     last checkpoint that came back; finished runs are skipped.
     """
-    try:
-        import ray
-    except ImportError:
-        raise RuntimeError("the ray backend needs the optional extra: pip install -e '.[ray]' in the "
-                           "checkout") from None
-    ray.init(address=address, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True,
-             runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})
+    ray = start_ray(address)
     task = ray.remote(num_cpus=1)(_run_remote)
     outcomes = [Outcome(j, "skipped", "already finished") for j in jobs if (j.out / "results.json").exists()]
     pending = {task.remote(j, _pack(j.out)): j for j in jobs if not (j.out / "results.json").exists()}

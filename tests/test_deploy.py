@@ -260,3 +260,15 @@ def test_ctrl_c_stops_the_driver_and_every_layer_process(tmp_path, tiny):
         time.sleep(0.1)
     else:
         pytest.fail("a process of the deployment outlived it")
+
+
+@pytest.mark.slow  # about a minute: Ray starts its own services, and each actor imports torch
+def test_layers_as_ray_actors_act_as_processes_do_and_a_dead_actor_is_a_fault(tmp_path):
+    pytest.importorskip("ray")
+    run = untrained("research/pendulum-residual-3.toml", [], tmp_path)
+    lines = []
+    rows = deploy(run, [Settings(lockstep=True), Settings(lockstep=True, faults={"mid": Fault("die", 10)})],
+                  episodes=1, out=tmp_path / "deploy", notify=lines.append, transport="ray")
+    assert rows[0]["same_actions_as_eval"] and not rows[0]["faults"]
+    assert len(rows[1]["faults"]) == 1 and "layer 'mid'" in rows[1]["faults"][0] and "died" in rows[1]["faults"][0]
+    assert rows[1]["layers"]["mid"]["requests"] == 10
