@@ -100,8 +100,9 @@ class Driver:
         self.faults: list[str] = []
         self.dead: set[int] = set()
         self.stash: list[tuple[int, Any]] = []  # answers that came while another was awaited: applied next step
-        # per layer, the requests not yet answered, oldest first, as (episode, step, deadline): a process
-        # answers in order, so an answer settles every request before its own
+        # per layer, the requests not yet answered, oldest first, as (episode, step, from when a stall counts:
+        # the deadline, or the sending where the driver ran late): a process answers in order, so an answer
+        # settles every request before its own
         self.outstanding: dict[int, deque[tuple[int, int, float]]] = {i: deque() for i in rules.active}
         self.episode = -1
         self.t = 0
@@ -182,7 +183,7 @@ class Driver:
     def _ask(self, i: int, request: Request) -> bool:
         try:
             self.processes[i].send(request)
-            self.outstanding[i].append((request.episode, request.step, self._deadline(i)))
+            self.outstanding[i].append((request.episode, request.step, max(self._deadline(i), time.monotonic())))
             return True
         except LayerFault as e:
             self._fault(i, str(e))
@@ -279,7 +280,10 @@ class Driver:
         if i == self.rules.active[-1]:  # the fastest present layer: its correction goes
             self.rules.held[i][...] = 0.0
             self.rules.inflight[i][...] = 0.0
-        self.faults.append(f"{message} {where}; going on with the slower layers' held outputs (--on-fault hold)")
+            going_on = "going on with the slower layers' outputs alone"
+        else:
+            going_on = "going on with its last output held"
+        self.faults.append(f"{message} {where}; {going_on} (--on-fault hold)")
         self.notify(f"layered: {self.faults[-1]}")
 
 

@@ -141,7 +141,7 @@ def _ms(value: float | None) -> str:
 def table(rows: Sequence[dict[str, Any]]) -> str:
     """The measures as a markdown table: one line per setting and layer."""
     lines = ["| setting | return (deployed) | return (eval) | same actions | steps/s | x real time | layer "
-             "| latency median / p99 ms | missed | late | dropped | delay seen (steps) |",
+             "| latency median / p99 ms | missed | late | dropped | delay seen, steps:count |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         first = True
@@ -150,10 +150,10 @@ def table(rows: Sequence[dict[str, Any]]) -> str:
                     f"{row['eval_return_mean']:.1f} | {'yes' if row['same_actions_as_eval'] else 'no'} | "
                     f"{row['steps_per_s']:.0f} | {row['real_time_factor']:.1f} " if first and row["episodes"]
                     else "| | | | | | ")
-            seen = layer["mean_delay_seen"]
+            seen = " ".join(f"{k}:{n}" for k, n in layer["delay_seen"].items()) or "-"
             lines.append(f"{head}| {name} | {_ms(layer['latency_ms']['median'])} / {_ms(layer['latency_ms']['p99'])} "
                          f"| {layer['missed']} of {layer['settled']} | {layer['late']} | {layer['dropped']} | "
-                         f"{'-' if seen is None else f'{seen:.2f}'} (trained {layer['scheduled_delay']}) |")
+                         f"{seen} (trained {layer['scheduled_delay']}) |")
             first = False
     return "\n".join(lines)
 
@@ -161,6 +161,8 @@ def table(rows: Sequence[dict[str, Any]]) -> str:
 def plot(rows: Sequence[dict[str, Any]], out_png: Path, title: str) -> None:
     """Return, latency, misses and delay seen against the settings, one line per layer."""
     plt = pyplot()
+    from matplotlib.ticker import ScalarFormatter
+
     labels = [row["setting"] for row in rows]
     x = np.arange(len(rows))
     fig, axes = plt.subplots(1, 4, figsize=(17, 3.8), constrained_layout=True)
@@ -178,6 +180,7 @@ def plot(rows: Sequence[dict[str, Any]], out_png: Path, title: str) -> None:
                    marker="o", label=name)
     latency.set_ylabel("decision latency p99 (ms)")
     latency.set_yscale("log")
+    latency.yaxis.set_major_formatter(ScalarFormatter())
     missed.set_ylabel("deadlines missed (%)")
     delay.set_ylabel("mean delay seen (base steps)")
     for ax in axes:

@@ -15,9 +15,12 @@ import pytest
 from layered import load_recipe
 from layered.cli import main
 from layered import layer_process
-from layered.deploy import Decision, Episode, Settings
+from layered.agents import make_aec_env
+from layered.deploy import Decision, Driver, Episode, Settings
 from layered.deploy_measures import largest_difference, layer_measures, run_measures
-from layered.deploy_run import deploy
+from layered.deploy_run import deploy, start_layers
+from layered.envs import make_env
+from layered.evaluate import run_episode
 from layered.layer_process import Fault, LayerFault, LayerProcess, Link, Request
 from layered.learner_set import build_learners
 from layered.rules import Layer, Rules
@@ -166,6 +169,28 @@ def test_a_layer_that_dies_is_reported_and_the_stack_goes_on_without_it(tmp_path
     assert row["episodes"] == 2 and len(row["faults"]) == 1 and not row["completed"]
     assert row["layers"]["fast"]["requests"] == 30
     assert not any(_alive(pid) for pid in row["pids"])
+
+
+def test_without_its_fast_layer_the_stack_acts_as_its_slow_layer_alone(tmp_path):
+    run = untrained("pendulum/tla-c.toml", [], tmp_path)
+    from layered.export import export_stack
+
+    directory = export_stack(run.recipe, run.learners, run.active, tmp_path / "export", "torchscript")
+    rules = Rules.from_json(json.loads((directory / "stack.json").read_text())["rules"])
+    ends = start_layers(rules, directory, Settings(lockstep=True, faults={"fast": Fault("die", 5)}), 0)
+    driver = Driver(rules, ends, 0.05, Settings(lockstep=True), notify=lambda _: None)
+    env = make_env("Pendulum-v1")
+    try:
+        driver.play(env, 11)
+        second = driver.play(env, 12)
+    finally:
+        for end in ends.values():
+            end.close()
+        env.close()
+    alone = make_aec_env(run.recipe, active=["slow"], evaluation=True, keep_trace=True)
+    run_episode(alone, run.learners, 12)
+    assert len(driver.faults) == 1
+    np.testing.assert_array_equal(second.actions, np.asarray([r.action for r in alone.trace], np.float32))
 
 
 def test_a_stalled_layer_is_noticed_within_its_period_and_stop_ends_the_deployment(tmp_path):
