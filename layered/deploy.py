@@ -3,12 +3,13 @@
 The driver owns the environment and the stack's rules (the exported `Rules`, the very rules of
 training, evaluation and the export). Base step t is due at T0 + t·h, h being the environment's
 timestep divided by the speed. Whenever the rules have a layer decide, the driver sends that layer's
-process what it sees and waits for the answer until the decision's deadline: the end of the base
-step at which it is to take effect (its own step for a layer without delay; d of its decisions
-later for a delay of d). An answer that misses its deadline is counted, the stack executes what was
-in effect (the layer's previous output held, or queued, in its place), and the answer takes effect
-from the first base step after it arrives, unless the layer has decided again meanwhile
-(`Rules.amend`). So the delayed setting's semantics hold, but the delays now come from the clock.
+process what it sees. A layer without delay must answer by the end of that base step: the driver
+waits for it until then. A layer with a delay of d decisions must answer by the start of the step
+its output lands at, d of its decisions later; the driver goes on meanwhile. An answer that misses
+its deadline is counted, the stack executes what was in effect (the layer's previous output held,
+or queued, in its place), and the answer takes effect from the first base step after it arrives,
+unless the layer has decided again meanwhile (`Rules.amend`). So the delayed setting's semantics
+hold, but the delays now come from the clock.
 
 `lockstep` waits for every answer at once, and acts as `layered eval` acts; `speed=None` (as fast as
 possible) runs base steps back to back and waits for each answer only when it is to take effect.
@@ -61,7 +62,7 @@ class Decision:
     layer: int
     step: int  # the base step it decides for
     sent: float  # monotonic seconds
-    deadline: float  # when it must have been answered: the end of the base step it is to take effect at
+    deadline: float  # when it must have been answered (`Driver._deadline`)
     age: int = 0  # decisions of the layer since this one
     answered: float | None = None
     output: np.ndarray | None = None
@@ -120,7 +121,8 @@ class Driver:
             if self.clocked:
                 time.sleep(max(0.0, self.t0 + self.t * self.h - time.monotonic()))
             self._collect()
-            self._await_landings()
+            if not self.clocked:
+                self._await_landings()
             self.rules.decide_all(np.asarray(obs, np.float32).reshape(1, -1), self._act)
             action = self.rules.compose().action[0]
             actions.append(action.copy())
@@ -132,11 +134,12 @@ class Driver:
                 return Episode(total, np.asarray(actions), time.monotonic() - self.t0)
 
     def _deadline(self, i: int) -> float:
-        """The end of the base step at which layer i's decision of this step is to take effect."""
+        """When layer i's decision of this step must have been answered: without delay, by the end of this
+        step; with one, by the start of the step it lands at, when the step's first decisions are made."""
         if not self.clocked:
             return float("inf")
         layer = self.rules.layers[i]
-        return self.t0 + (self.t + layer.delay * layer.period + 1) * self.h
+        return self.t0 + (self.t + (layer.delay * layer.period if layer.delay else 1)) * self.h
 
     def _stall_limit(self, i: int) -> float:
         """How long past its deadline (clocked) or since it was sent (otherwise) a request may go unanswered."""
@@ -258,7 +261,7 @@ class Driver:
             decision.landed = self.t
 
     def _await_landings(self) -> None:
-        """Before a delayed layer decides, wait (until its deadline) for the answer that lands then."""
+        """Without a clock: before a delayed layer decides, wait for the answer that lands then."""
         for i in self.rules.active:
             layer = self.rules.layers[i]
             if not layer.delay or i in self.dead or not self.rules.due(i)[0]:

@@ -1,7 +1,7 @@
 """What a deployment measured, per layer and overall: the numbers `layered deploy` prints, draws and writes.
 
-A decision is *missed* when its answer had not come by its deadline (the end of the base step at
-which it was to take effect); a missed decision that came before its layer decided again took
+A decision is *missed* when its answer had not come by its deadline (for a layer without delay, the
+end of its own base step; with a delay, the start of the step it lands at); a missed decision that came before its layer decided again took
 effect late, one that did not was *dropped*. The *delay seen* of a decision that took effect is the
 number of base steps from the step it was decided for to the first step it was in effect: the
 layer's trained delay (delay x period) when on time, more when late.

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -21,7 +22,8 @@ from layered.deploy_measures import largest_difference, layer_measures, run_meas
 from layered.deploy_run import deploy, start_layers
 from layered.envs import make_env
 from layered.evaluate import run_episode
-from layered.layer_process import Fault, LayerFault, LayerProcess, Link, Request
+from layered.combiners import ResidualClip
+from layered.layer_process import Fault, LayerFault, LayerProcess, Link, Reply, Request
 from layered.learner_set import build_learners
 from layered.rules import Layer, Rules
 from layered.run_evals import TrainedRun
@@ -155,6 +157,59 @@ def test_against_the_clock_every_decision_is_settled_and_seen_no_earlier_than_tr
         assert layer["settled"] >= layer["requests"] - 2 * 2  # at most one in flight per episode end and layer
         assert all(int(k) >= layer["scheduled_delay"] for k in layer["delay_seen"])
         assert layer["latency_ms"]["median"] < 1e3 * layer["period_s"]
+
+
+class Scripted:
+    """A layer's end answering with `value(step)`, available to the driver once its step counter reaches
+    the decision's step plus `lag(step)`: a timeline to trace by hand, with no process and no timing noise."""
+
+    def __init__(self, name, value, lag):
+        self.name, self.pid, self.value, self.lag = name, None, value, lag
+        self.driver, self.sent = None, []
+
+    def wait_ready(self, timeout_s):
+        pass
+
+    def send(self, request):
+        self.sent.append(request)
+
+    def receive(self, timeout_s):
+        if self.sent and self.driver.t >= self.sent[0].step + self.lag(self.sent[0].step):
+            r = self.sent.pop(0)
+            return Reply(layer_process.PROTOCOL, self.name, r.episode, r.step, np.float32([self.value(r.step)]), 0.0)
+        time.sleep(min(timeout_s, 0.001))
+        return None
+
+    def close(self):
+        pass
+
+
+def test_a_timeline_traced_by_hand_late_answers_of_a_delayed_slow_layer_take_effect_when_they_come():
+    """Slow: period 2, delay 1, answers 0.1 x (step + 1), the one for step 2 three steps late. Fast:
+    period 1, no delay, answers 0.01 x (step + 1) at once. Slow's contribution, step by step: 0 and 0
+    (nothing landed), 0.1 and 0.1 (step 0's answer lands at step 2), 0.1 at step 4 (step 2's answer is
+    due but missing: its place holds the newest output in flight, step 0's), 0.3 at step 5 (it came:
+    late, it takes effect at once), 0.5 from step 6 (step 4's answer, on time) ..."""
+    low, high = np.float32([-2.0]), np.float32([2.0])
+    layers = [Layer("slow", 2, low, high, combiner=ResidualClip(), delay=1), Layer("fast", 1, low, high, sees=(0,))]
+    rules = Rules(layers, [0, 1], low, high)
+    ends = {0: Scripted("slow", lambda s: 0.1 * (s + 1), lambda s: 3 if s == 2 else 0),
+            1: Scripted("fast", lambda s: 0.01 * (s + 1), lambda s: 0)}
+    # base steps of 50 ms: long enough that the machine's own delays do not make an answer miss its step
+    driver = Driver(rules, ends, timestep=0.05, settings=Settings(speed=1.0), notify=lambda _: None)
+    for end in ends.values():
+        end.driver = driver
+    env = gym.wrappers.TimeLimit(make_env("Pendulum-v1"), 10)
+    episode = driver.play(env, 0)
+    env.close()
+    slow = [0, 0, 0.1, 0.1, 0.1, 0.3, 0.5, 0.5, 0.7, 0.7]
+    np.testing.assert_allclose(episode.actions[:, 0], [s + 0.01 * (t + 1) for t, s in enumerate(slow)], atol=1e-6)
+    decisions = {(d.layer, d.step): d for d in driver.decisions}
+    late = decisions[0, 2]
+    assert late.missed and late.landed == 5 and late.landed - late.step == 3
+    assert all(not d.missed for key, d in decisions.items() if key != (0, 2))
+    m = layer_measures([d for d in driver.decisions if d.layer == 0], scheduled=2)
+    assert m["delay_seen"] == {"2": 3, "3": 1} and (m["missed"], m["late"], m["dropped"]) == (1, 1, 0)
 
 
 # --- faults ---------------------------------------------------------------------------------------------
