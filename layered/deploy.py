@@ -67,6 +67,9 @@ class Decision:
     answered: float | None = None
     output: np.ndarray | None = None
     compute_s: float | None = None
+    to_layer_s: float | None = None  # from sending to the layer's receipt, and from its reply to the answer
+    back_s: float | None = None  # here (wall clocks: comparable where both ends share a machine's clock)
+    sent_wall: float = 0.0
     landed: int | None = None  # the base step from which it took effect
     missed: bool = False  # not answered by its deadline
 
@@ -159,10 +162,10 @@ class Driver:
             _never_executed(late)  # this decision moves the queue on: the next output in flight is held instead
         if i in self.dead or (layer.learns_from_commits and not self.rules.compose().reached[i][0]):
             return placeholder  # no process to ask, or kept out by a committed gate: the rules put the action there
-        decision = Decision(i, self.t, time.monotonic(), self._deadline(i))
+        decision = Decision(i, self.t, time.monotonic(), self._deadline(i), sent_wall=time.time())
         self.decisions.append(decision)
         self.pending[i].append(decision)
-        if not self._ask(i, Request(PROTOCOL, layer.name, self.episode, self.t, view[0])):
+        if not self._ask(i, Request(PROTOCOL, layer.name, self.episode, self.t, view[0], decision.sent_wall)):
             return placeholder
         if layer.delay and not self.settings.lockstep:
             return placeholder  # its answer is put in its place in flight when it comes (`_take`)
@@ -227,6 +230,8 @@ class Driver:
         decision.answered = time.monotonic()
         decision.output = np.asarray(reply.output, np.float32)
         decision.compute_s = reply.compute_s
+        decision.to_layer_s = reply.received - decision.sent_wall
+        decision.back_s = time.time() - reply.replied
 
     def _collect(self) -> None:
         """Apply every answer that has come since the last step; notice processes that died or stalled."""

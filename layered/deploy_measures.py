@@ -1,10 +1,11 @@
 """What a deployment measured, per layer and overall: the numbers `layered deploy` prints, draws and writes.
 
 A decision is *missed* when its answer had not come by its deadline (for a layer without delay, the
-end of its own base step; with a delay, the start of the step it lands at); a missed decision that came before its layer decided again took
-effect late, one that did not was *dropped*. The *delay seen* of a decision that took effect is the
-number of base steps from the step it was decided for to the first step it was in effect: the
-layer's trained delay (delay x period) when on time, more when late.
+end of its own base step; with a delay, the start of the step it lands at); a missed decision whose
+answer came before its layer decided again took effect late, one whose answer did not was *dropped*.
+The *delay seen* of a decision that took effect is the number of base steps from the step it was
+decided for to the first step it was in effect: the layer's trained delay (delay x period) when on
+time, more when late.
 """
 
 from __future__ import annotations
@@ -38,6 +39,8 @@ def layer_measures(decisions: Sequence[Decision], scheduled: int) -> dict[str, A
         "answered": sum(d.answered is not None for d in decisions),
         "latency_ms": percentiles_ms([d.latency_s for d in decisions if d.latency_s is not None]),
         "compute_ms": percentiles_ms([d.compute_s for d in decisions if d.compute_s is not None]),
+        "to_layer_ms": percentiles_ms([d.to_layer_s for d in decisions if d.to_layer_s is not None]),
+        "back_ms": percentiles_ms([d.back_s for d in decisions if d.back_s is not None]),
         "settled": len(settled),
         "missed": missed,
         "miss_rate": missed / len(settled) if settled else 0.0,

@@ -35,18 +35,21 @@ class LayerFault(RuntimeError):
 
 @dataclass(frozen=True)
 class Request:
-    """What layer `layer` sees before its decision for base `step` of `episode`."""
+    """What layer `layer` sees before its decision for base `step` of `episode`, sent at `sent` (the
+    driver's wall clock, seconds since the epoch)."""
 
     version: int
     layer: str
     episode: int
     step: int
     view: np.ndarray
+    sent: float = 0.0
 
 
 @dataclass(frozen=True)
 class Reply:
-    """A layer's output for its decision at base `step` of `episode`, and how long its policy took."""
+    """A layer's output for its decision at base `step` of `episode`, how long its policy took, and when
+    (the layer's wall clock) the request reached it and the reply left."""
 
     version: int
     layer: str
@@ -54,6 +57,8 @@ class Reply:
     step: int
     output: np.ndarray
     compute_s: float
+    received: float = 0.0
+    replied: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -145,11 +150,13 @@ class Server:
                 os._exit(1)
             return None
         self._travel()  # the request's way here
+        received = time.time()
         start = time.perf_counter()
         output = np.asarray(self.policy(request.view), np.float32)
         compute = time.perf_counter() - start
+        replied = time.time()
         self._travel()  # the reply's way back
-        return Reply(PROTOCOL, self.name, request.episode, request.step, output, compute)
+        return Reply(PROTOCOL, self.name, request.episode, request.step, output, compute, received, replied)
 
     def _travel(self) -> None:
         """Hold a message for one sample of the link's delay."""

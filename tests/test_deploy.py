@@ -176,7 +176,8 @@ class Scripted:
     def receive(self, timeout_s):
         if self.sent and self.driver.t >= self.sent[0].step + self.lag(self.sent[0].step):
             r = self.sent.pop(0)
-            return Reply(layer_process.PROTOCOL, self.name, r.episode, r.step, np.float32([self.value(r.step)]), 0.0)
+            return Reply(layer_process.PROTOCOL, self.name, r.episode, r.step, np.float32([self.value(r.step)]), 0.0,
+                         r.sent, r.sent)
         time.sleep(min(timeout_s, 0.001))
         return None
 
