@@ -26,6 +26,7 @@ import torch
 
 from layered.checkpoint import save_checkpoint
 from layered.env_group import EnvGroup
+from layered.events import EventLog
 from layered.group_eval import all_rows, evaluate_group
 from layered.learner_set import build_learners, keep_start_weights, start_from_weights
 from layered.learners.td3_group import GroupLosses, TD3Group
@@ -36,7 +37,7 @@ from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
 from layered.rundir import RunInfo, check_new_run_dir, prepare_run_dir, writing
 from layered.rules import Rules
-from layered.runs import warmup_warnings
+from layered.runs import unavailable_settings, warmup_warnings
 from layered.runstate import LoopState, UpdateStats
 from layered.stack import Stack
 from layered.trainer import (
@@ -58,6 +59,7 @@ class Seed:
     out: Path
     metrics: CsvLog
     episodes: CsvLog
+    events: EventLog | None = None  # TensorBoard scalars, when the recipe asks for them
     state: LoopState = field(default_factory=LoopState)
 
 
@@ -85,8 +87,7 @@ def check_group(recipe: Recipe) -> None:
         if kind != "td3":
             out.append((f"layers[{i}].learner.kind", f"layer {layer.name!r} uses the {kind!r} learner, which does "
                         "not train as a group yet (train its seeds with `layered sweep`)"))
-    if recipe.log.tensorboard:
-        out.append(("log.tensorboard", "a group writes no TensorBoard events yet"))
+    out += unavailable_settings(recipe)
     if out:
         raise RecipeError("recipe", out)
 
@@ -113,7 +114,8 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
             prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume=False)
             keep_start_weights(recipe, learners, out / "checkpoints")
             seeds.append(Seed(recipe, out, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
-                              CsvLog(out / "episodes.csv", EPISODE_FIELDS)))
+                              CsvLog(out / "episodes.csv", EPISODE_FIELDS),
+                              EventLog(out / "tensorboard") if recipe.log.tensorboard else None))
         for seed in seeds:
             seed.metrics.start()
             seed.episodes.start()
@@ -122,6 +124,8 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
         group.train()
         for seed in seeds:
             write_results(seed.recipe, seed.state.rows, seed.out, label)
+            if seed.events is not None:
+                seed.events.close()
     return [seed.state.rows for seed in seeds]
 
 
@@ -273,8 +277,11 @@ class Group:
             state.curve.append((step, result))
             if state.best_index() == len(state.curve) - 1:
                 state.best = {name: self.learners[name].seed_state_dict(k) for name in phase.learn}
-            seed.metrics.write({"phase": state.phase, "learn": "+".join(phase.learn), "step": step, **result.row(),
-                                **mean_losses(per_seed[k], {n: TD3Group.loss_names for n in phase.learn})})
+            row = {"phase": state.phase, "learn": "+".join(phase.learn), "step": step, **result.row(),
+                   **mean_losses(per_seed[k], {n: TD3Group.loss_names for n in phase.learn})}
+            seed.metrics.write(row)
+            if seed.events is not None:
+                seed.events.write(row)
         returns = np.array([r.return_mean for r in results])
         bar.evaluated(step, float(returns.mean()), float(returns.std()))
 

@@ -41,6 +41,15 @@ CHANGEABLE = re.compile(r"layers\[\d+\]\.(learner\.(?!kind$)\w+|action_penalty|u
 """The resolved recipe's keys a resumed run may change (`layered resume --set`)."""
 
 
+def unavailable_settings(recipe: Recipe) -> list[tuple[str, str]]:
+    """The recipe's settings this machine cannot honour (a device, a compiler, TensorBoard), as (key, why)."""
+    out = sorted({p for i in range(len(recipe.layers)) for p in recipe.learner_config(i).unavailable()})
+    if recipe.log.tensorboard and not events_available():
+        out.append(("log.tensorboard", "needs the extra layered-control[tensorboard]: "
+                                       "pip install -e '.[tensorboard]' in the checkout"))
+    return out
+
+
 def warmup_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
     """Phases too short for a learning layer to finish its random warm-up, so that it never learns."""
     out = []
@@ -83,12 +92,9 @@ def train(
     out = Path(out_dir)
     for warning in warmup_warnings(recipe, max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
-    unavailable = sorted({p for i in range(len(recipe.layers)) for p in recipe.learner_config(i).unavailable()})
+    unavailable = unavailable_settings(recipe)
     if unavailable:
         raise RecipeError("recipe", unavailable)
-    if recipe.log.tensorboard and not events_available():
-        raise RecipeError("recipe", [("log.tensorboard", "needs the extra layered-control[tensorboard]: "
-                                      "pip install -e '.[tensorboard]' in the checkout")])
     info = RunInfo(label or out.name, max_steps, tuple(plugins))
     learners = build_learners(recipe)
     if not (resume and has_progress(out)):

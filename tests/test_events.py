@@ -56,3 +56,13 @@ def test_resumed_run_drops_events_written_after_its_checkpoint(tmp_path, tiny, m
         stale.add_scalar("eval/return", -1e6, 300)
     resume(tmp_path, max_steps=400, progress=False)
     assert same_as_csv(tmp_path, "phase-0-slow", 0)
+
+
+def test_each_seed_of_a_group_writes_its_own_event_files(tmp_path, tiny):
+    from layered.group import group_recipes, train_group
+
+    recipes = group_recipes("pendulum/tla-c.toml", [0, 1], [*tiny, "log.tensorboard=true"])
+    train_group(recipes, [tmp_path / "seed0", tmp_path / "seed1"], "pendulum/tla-c", max_steps=300, progress=False)
+    for seed in ("seed0", "seed1"):
+        for phase, folder in enumerate(["phase-0-slow", "phase-1-fast"]):
+            assert same_as_csv(tmp_path / seed, folder, phase)
