@@ -286,10 +286,18 @@ def test_a_message_of_another_protocol_version_is_refused_both_ways(tmp_path, mo
 # --- the command ----------------------------------------------------------------------------------------
 
 
-def test_deploy_command_writes_what_it_prints_and_leaves_no_process(tmp_path, tiny, capsys):
-    out = tmp_path / "run"
-    assert main(["train", "pendulum/tla-c.toml", "--out", str(out), "--steps", "200", *tiny]) == 0
-    capsys.readouterr()
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A briefly trained TLA-C run, shared by the command's tests (they only read it, or write under --out)."""
+    out = tmp_path_factory.mktemp("deploy") / "run"
+    tiny = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=100",
+            "eval.episodes=1", "eval.fresh_episodes=2"]
+    assert main(["train", "pendulum/tla-c.toml", "--out", str(out), "--steps", "150", *tiny]) == 0
+    return out
+
+
+def test_deploy_command_writes_what_it_prints_and_leaves_no_process(trained, tmp_path, capsys):
+    out = trained
     assert main(["deploy", str(out), "--lockstep", "--speed", "max", "--episodes", "1",
                  "--link-delay", "slow=1ms±0.5ms", "--out", str(tmp_path / "d")]) == 0
     printed = capsys.readouterr().out
@@ -307,9 +315,8 @@ def test_deploy_command_writes_what_it_prints_and_leaves_no_process(tmp_path, ti
     (["--fault", "fast:hang@3"], "die@N or stall@N"),
     (["--link-delay", "5"], "is not a duration"),
 ])
-def test_bad_deploy_options_are_refused_in_one_line(tmp_path, tiny, capsys, args, message):
-    out = tmp_path / "run"
-    assert main(["train", "pendulum/tla-c.toml", "--out", str(out), "--steps", "150", *tiny]) == 0
+def test_bad_deploy_options_are_refused_in_one_line(trained, capsys, args, message):
+    out = trained
     capsys.readouterr()
     assert main(["deploy", str(out), *args]) == 2
     err = capsys.readouterr().err
@@ -317,14 +324,14 @@ def test_bad_deploy_options_are_refused_in_one_line(tmp_path, tiny, capsys, args
     assert not (out / "deploy").exists()
 
 
-def test_ctrl_c_stops_the_driver_and_every_layer_process(tmp_path, tiny):
-    out = tmp_path / "run"
-    assert main(["train", "pendulum/tla-c.toml", "--out", str(out), "--steps", "150", *tiny]) == 0
-    command = [sys.executable, "-m", "layered.cli", "deploy", str(out), "--speed", "1", "--episodes", "20"]
+def test_ctrl_c_stops_the_driver_and_every_layer_process(trained, tmp_path):
+    out = tmp_path / "deploy"
+    command = [sys.executable, "-m", "layered.cli", "deploy", str(trained), "--speed", "1", "--episodes", "20",
+               "--out", str(out)]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                start_new_session=True)
     deadline = time.monotonic() + 120
-    while not (out / "deploy" / "export-torchscript" / "stack.json").exists() and time.monotonic() < deadline:
+    while not (out / "export-torchscript" / "stack.json").exists() and time.monotonic() < deadline:
         time.sleep(0.2)
     time.sleep(8)  # the layers' processes start (a few seconds) and play
     os.killpg(process.pid, signal.SIGINT)  # as Ctrl-C at a terminal: the whole foreground group
