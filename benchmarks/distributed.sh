@@ -8,7 +8,7 @@
 set -euo pipefail
 pendulum=$1 delayed=$2 idp=$3 hopper=$4 out=${5:-runs/distributed}
 deploy() { layered deploy "$@"; }
-speeds=1,2,5,10,20,50,100,max
+speeds=1,2,5,10,20,50,100
 
 deploy "$pendulum" --lockstep --speed $speeds --episodes 5 --out "$out/pendulum/speeds"
 deploy "$idp" --lockstep --speed $speeds --episodes 5 --out "$out/idp/speeds"

@@ -182,19 +182,19 @@ def _parser() -> argparse.ArgumentParser:
         "how to read them: docs/distributed.md",
     )
     dp.add_argument("run_dir", type=Path, help="run directory of a trained run")
-    dp.add_argument("--speed", type=_speeds, metavar="X,Y,...|max",
-                    help="times real time, one setting per value; max: as fast as possible (default 1)")
+    dp.add_argument("--speed", type=_speeds, metavar="X,Y,...",
+                    help="times real time, one setting per value (default 1)")
     dp.add_argument("--lockstep", action="store_true",
-                    help="also (or, without --speed, only) a setting in which the driver waits for every answer: "
-                    "it must execute layered eval's actions")
+                    help="also (or, without --speed, only) a setting without a clock, as fast as the layers answer: "
+                    "the driver waits for every answer, and must execute layered eval's actions")
     dp.add_argument("--episodes", type=_positive, default=3, help="episodes per setting (default 3)")
     dp.add_argument("--link-delay", action="append", default=[], metavar="[LAYER=]5ms±2ms",
                     help="delay each message to and from a layer (every layer without LAYER=); repeatable")
     dp.add_argument("--fault", action="append", default=[], metavar="LAYER:die@N|LAYER:stall@N",
                     help="make a layer's process die or stall at its N-th request; repeatable")
     dp.add_argument("--on-fault", choices=FAULT_ACTIONS, default="hold",
-                    help="when a layer's process dies or stalls: go on with the slower layers' held outputs "
-                    "(default) or stop")
+                    help="when a layer's process dies or stalls: go on without it (default; the slower layers "
+                    "act alone, a slower layer's last output stays) or stop")
     dp.add_argument("--weights", choices=["final", "best"],
                     help="each phase's final or best weights (default: the recipe's train.select)")
     dp.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
@@ -427,13 +427,14 @@ def _per_layer(values: list[str], separator: str, parse: Callable[[str], Any], l
     return out
 
 
-def _speeds(text: str) -> list[float | None]:
+def _speeds(text: str) -> list[float]:
     try:
-        speeds = [None if part.strip() == "max" else float(part) for part in text.split(",")]
+        speeds = [float(part) for part in text.split(",")]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected numbers or max, e.g. 1,2,5,10,max") from None
-    if any(speed is not None and not speed > 0 for speed in speeds):
-        raise argparse.ArgumentTypeError(f"{text!r}: a speed must be above 0")
+        raise argparse.ArgumentTypeError(f"{text!r}: expected numbers, e.g. 1,2,5,10 (--lockstep: as fast as "
+                                         "possible)") from None
+    if not all(0 < speed < math.inf for speed in speeds):
+        raise argparse.ArgumentTypeError(f"{text!r}: a speed must be above 0 and finite")
     return speeds
 
 

@@ -11,8 +11,8 @@ or queued, in its place), and the answer takes effect from the first base step a
 unless the layer has decided again meanwhile (`Rules.amend`). So the delayed setting's semantics
 hold, but the delays now come from the clock.
 
-`lockstep` waits for every answer at once, and acts as `layered eval` acts; `speed=None` (as fast as
-possible) runs base steps back to back and waits for each answer only when it is to take effect.
+`lockstep` has no clock: it runs base steps back to back, as fast as the layers answer, and waits
+for every answer at once, so that it acts as `layered eval` acts.
 A layer whose process dies, or leaves a request unanswered for one of its periods past the deadline,
 is a fault: the stack goes on without it (`hold`: the fastest layer then adds nothing, a slower one's
 last output stays in effect) or stops (`stop`).
@@ -33,7 +33,7 @@ from layered.layer_process import PROTOCOL, Fault, LayerEnd, LayerFault, Link, R
 from layered.rules import Rules
 
 STALL_FLOOR_S = 0.02  # the shortest stall a clocked layer is declared dead after: the OS may pause a process that long
-UNCLOCKED_STALL_S = 2.0  # lockstep and as fast as possible: how long an unanswered request may wait
+UNCLOCKED_STALL_S = 2.0  # lockstep: how long an unanswered request may wait
 FAULT_ACTIONS = ("hold", "stop")
 
 
@@ -41,16 +41,16 @@ FAULT_ACTIONS = ("hold", "stop")
 class Settings:
     """How a deployment runs: its clock, what is injected, what a fault does."""
 
-    speed: float | None = 1.0  # times real time; None: as fast as possible
-    lockstep: bool = False
+    speed: float = 1.0  # times real time
+    lockstep: bool = False  # no clock: every answer is waited for, as fast as the layers answer
     links: Mapping[str, Link] = field(default_factory=dict)  # per layer name
     faults: Mapping[str, Fault] = field(default_factory=dict)
     on_fault: str = "hold"
 
     @property
     def label(self) -> str:
-        """A name for files and tables: `lockstep`, `1x`, `10x`, `max`, with the links it injects."""
-        clock = "lockstep" if self.lockstep else "max" if self.speed is None else f"{self.speed:g}x"
+        """A name for files and tables: `lockstep`, `1x`, `10x`, with the links it injects."""
+        clock = "lockstep" if self.lockstep else f"{self.speed:g}x"
         links = [f"{name}={link}" for name, link in sorted(self.links.items()) if link.mean_s]
         return ",".join([clock, *links])
 
@@ -97,8 +97,8 @@ class Driver:
     def __init__(self, rules: Rules, processes: Mapping[int, LayerEnd], timestep: float, settings: Settings,
                  notify: Callable[[str], None] = print) -> None:
         self.rules, self.processes, self.settings, self.notify = rules, dict(processes), settings, notify
-        self.clocked = not settings.lockstep and settings.speed is not None
-        self.h = timestep / settings.speed if self.clocked and settings.speed else 0.0
+        self.clocked = not settings.lockstep
+        self.h = timestep / settings.speed if self.clocked else 0.0
         self.decisions: list[Decision] = []  # every request, for the summary
         self.pending: dict[int, list[Decision]] = {i: [] for i in rules.active}  # not yet landed
         self.faults: list[str] = []
@@ -124,8 +124,6 @@ class Driver:
             if self.clocked:
                 time.sleep(max(0.0, self.t0 + self.t * self.h - time.monotonic()))
             self._collect()
-            if not self.clocked:
-                self._await_landings()
             self.rules.decide_all(np.asarray(obs, np.float32).reshape(1, -1), self._act)
             action = self.rules.compose().action[0]
             actions.append(action.copy())
@@ -145,7 +143,7 @@ class Driver:
         return self.t0 + (self.t + (layer.delay * layer.period if layer.delay else 1)) * self.h
 
     def _stall_limit(self, i: int) -> float:
-        """How long past its deadline (clocked) or since it was sent (otherwise) a request may go unanswered."""
+        """How long past its deadline (clocked) or since it was sent (lockstep) a request may go unanswered."""
         if not self.clocked:
             return UNCLOCKED_STALL_S
         return max(self.rules.layers[i].period * self.h, STALL_FLOOR_S)
@@ -167,7 +165,7 @@ class Driver:
         self.pending[i].append(decision)
         if not self._ask(i, Request(PROTOCOL, layer.name, self.episode, self.t, view[0], decision.sent_wall)):
             return placeholder
-        if layer.delay and not self.settings.lockstep:
+        if layer.delay and self.clocked:
             return placeholder  # its answer is put in its place in flight when it comes (`_take`)
         if self._wait(i, decision) and decision.output is not None:
             if layer.delay == 0:
@@ -264,16 +262,6 @@ class Driver:
         self._answer(decision, reply)
         if self.rules.amend(i, decision.age, reply.output) == "late":
             decision.landed = self.t
-
-    def _await_landings(self) -> None:
-        """Without a clock: before a delayed layer decides, wait for the answer that lands then."""
-        for i in self.rules.active:
-            layer = self.rules.layers[i]
-            if not layer.delay or i in self.dead or not self.rules.due(i)[0]:
-                continue
-            landing = next((d for d in self.pending[i] if d.age == layer.delay - 1 and d.output is None), None)
-            if landing is not None and self._wait(i, landing) and landing.output is not None:
-                self.rules.amend(i, landing.age, landing.output)  # in flight still: it lands as this step's decision
 
     def _fault(self, i: int, message: str) -> None:
         """A layer's process died or stalled: stop it, then go on without it or stop, as the settings say."""

@@ -298,13 +298,15 @@ def trained(tmp_path_factory):
 
 def test_deploy_command_writes_what_it_prints_and_leaves_no_process(trained, tmp_path, capsys):
     out = trained
-    assert main(["deploy", str(out), "--lockstep", "--speed", "max", "--episodes", "1",
+    assert main(["deploy", str(out), "--lockstep", "--speed", "5", "--episodes", "1",
                  "--link-delay", "slow=1ms±0.5ms", "--out", str(tmp_path / "d")]) == 0
     printed = capsys.readouterr().out
     rows = [json.loads((tmp_path / "d" / f"{label}.json").read_text()) for label in ("lockstep,slow=1ms±0.5ms",
-                                                                                    "max,slow=1ms±0.5ms")]
-    assert rows[0]["same_actions_as_eval"] and rows[1]["same_actions_as_eval"]  # neither has a deadline
+                                                                                    "5x,slow=1ms±0.5ms")]
+    assert rows[0]["same_actions_as_eval"]
+    assert rows[1]["real_time_factor"] == pytest.approx(5, rel=0.5) and rows[1]["steps"] == 200
     assert rows[0]["layers"]["slow"]["latency_ms"]["median"] >= 1.0  # the link's two ways, 0.5 ms at least each
+    assert rows[0]["layers"]["slow"]["to_layer_ms"]["median"] >= 0.5
     assert f"{rows[1]['return_mean']:.1f}" in printed and (tmp_path / "d" / "deploy.png").exists()
     assert (tmp_path / "d" / "deploy.md").read_text().strip() in printed
     assert not any(_alive(pid) for row in rows for pid in row["pids"])
@@ -322,6 +324,13 @@ def test_bad_deploy_options_are_refused_in_one_line(trained, capsys, args, messa
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
     assert not (out / "deploy").exists()
+
+
+def test_a_speed_that_is_not_a_positive_number_is_a_usage_error(trained, capsys):
+    for speed in ("max", "0", "inf"):
+        with pytest.raises(SystemExit) as stop:
+            main(["deploy", str(trained), "--speed", f"1,{speed}"])
+        assert stop.value.code == 2 and "argument --speed" in capsys.readouterr().err
 
 
 def test_ctrl_c_stops_the_driver_and_every_layer_process(trained, tmp_path):
