@@ -20,6 +20,7 @@ last output stays in effect) or stops (`stop`).
 
 from __future__ import annotations
 
+import multiprocessing.connection
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
@@ -122,7 +123,7 @@ class Driver:
             queue.clear()  # the previous episode's answers are ignored when they come
         while True:
             if self.clocked:
-                time.sleep(max(0.0, self.t0 + self.t * self.h - time.monotonic()))
+                self._listen(self.t0 + self.t * self.h)
             self._collect()
             self.rules.decide_all(np.asarray(obs, np.float32).reshape(1, -1), self._act)
             action = self.rules.compose().action[0]
@@ -238,19 +239,38 @@ class Driver:
         self.stash.clear()
         now = time.monotonic()
         for i in self.rules.active:
-            if i in self.dead:
-                continue
-            try:
-                while (reply := self._receive(i, 0.0)) is not None:
-                    self._take(i, reply)
-            except LayerFault as e:
-                self._fault(i, str(e))
+            if i in self.dead or not self._drain(i):
                 continue
             oldest = self.outstanding[i][0] if self.outstanding[i] else None
             if self.clocked and oldest is not None and now - oldest[2] > self._stall_limit(i):
                 self._fault(i, f"layer {self.rules.layers[i].name!r} left step {oldest[1]}'s request unanswered "
                                f"for one of its periods past its deadline ({self._stall_limit(i) * 1e3:.0f} ms): "
                                "stalled")
+
+    def _listen(self, until: float) -> None:
+        """Until the monotonic time `until` (the next step), take each answer as it comes, so that its time
+        of arrival is when it came, not the next step."""
+        while (remaining := until - time.monotonic()) > 0:
+            live = [i for i in self.rules.active if i not in self.dead]
+            waitables = {self.processes[i].waitable: i for i in live}
+            if None in waitables or not waitables:  # a transport without a waitable handle: poll
+                time.sleep(min(remaining, 0.001))
+                ready = live
+            else:
+                ready = [waitables[w] for w in multiprocessing.connection.wait(list(waitables), remaining)]
+            for i in ready:
+                if i not in self.dead:
+                    self._drain(i)
+
+    def _drain(self, i: int) -> bool:
+        """Take every answer of layer i that is here; False if its process turned out dead."""
+        try:
+            while (reply := self._receive(i, 0.0)) is not None:
+                self._take(i, reply)
+        except LayerFault as e:
+            self._fault(i, str(e))
+            return False
+        return True
 
     def _take(self, i: int, reply: Any) -> None:
         """A late answer, or one of a delayed layer: put it in its decision's place by the rules."""

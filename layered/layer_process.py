@@ -20,7 +20,7 @@ import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -213,6 +213,7 @@ class LayerEnd(Protocol):
 
     name: str
     pid: int | None
+    waitable: Any  # what `multiprocessing.connection.wait` can wait on for its answers, or None
 
     def wait_ready(self, timeout_s: float) -> None: ...
     def send(self, request: Request) -> None: ...
@@ -233,6 +234,7 @@ class LayerProcess:
         self.process.start()
         child.close()  # the child holds the only other end: its death is an end of file here at once
         self.pid: int | None = self.process.pid
+        self.waitable: Any = self.connection
 
     def wait_ready(self, timeout_s: float) -> None:
         """Block until the process has loaded its policy; a process that fails to is a fault."""

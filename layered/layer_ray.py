@@ -55,6 +55,7 @@ class RayLayer:
         self.actor = _actor_class().remote(files, backend, name, link, fault, seed)
         self.replies: deque[Any] = deque()  # object refs of the requests sent, oldest first
         self.pid: int | None = None
+        self.waitable: Any = None  # Ray's object refs are waited on by `ray.wait`: the driver polls
 
     def wait_ready(self, timeout_s: float) -> None:
         """Block until the actor has loaded its policy; one that fails to is a fault."""

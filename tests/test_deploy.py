@@ -164,7 +164,7 @@ class Scripted:
     the decision's step plus `lag(step)`: a timeline to trace by hand, with no process and no timing noise."""
 
     def __init__(self, name, value, lag):
-        self.name, self.pid, self.value, self.lag = name, None, value, lag
+        self.name, self.pid, self.waitable, self.value, self.lag = name, None, None, value, lag
         self.driver, self.sent = None, []
 
     def wait_ready(self, timeout_s):
