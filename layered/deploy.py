@@ -56,7 +56,7 @@ class Settings:
         return ",".join([clock, *links])
 
 
-@dataclass
+@dataclass(eq=False)  # compared by identity: two decisions are never the same one
 class Decision:
     """One request to a layer and what became of it."""
 
@@ -101,6 +101,7 @@ class Driver:
         self.clocked = not settings.lockstep
         self.h = timestep / settings.speed if self.clocked else 0.0
         self.decisions: list[Decision] = []  # every request, for the summary
+        self.asked: dict[tuple[int, int, int], Decision] = {}  # the same, by layer, episode and step
         self.pending: dict[int, list[Decision]] = {i: [] for i in rules.active}  # not yet landed
         self.faults: list[str] = []
         self.dead: set[int] = set()
@@ -109,6 +110,7 @@ class Driver:
         # the deadline, or the sending where the driver ran late): a process answers in order, so an answer
         # settles every request before its own
         self.outstanding: dict[int, deque[tuple[int, int, float]]] = {i: deque() for i in rules.active}
+        self.heard: dict[int, float] = {}  # when each layer last answered (monotonic)
         self.episode = -1
         self.t = 0
         self.t0 = 0.0
@@ -163,6 +165,7 @@ class Driver:
             return placeholder  # no process to ask, or kept out by a committed gate: the rules put the action there
         decision = Decision(i, self.t, time.monotonic(), self._deadline(i), sent_wall=time.time())
         self.decisions.append(decision)
+        self.asked[i, self.episode, self.t] = decision
         self.pending[i].append(decision)
         if not self._ask(i, Request(PROTOCOL, layer.name, self.episode, self.t, view[0], decision.sent_wall)):
             return placeholder
@@ -220,6 +223,7 @@ class Driver:
         """Layer i's next answer within `timeout_s`, or None; it settles the requests before it."""
         reply = self.processes[i].receive(timeout_s)
         if reply is not None:
+            self.heard[i] = time.monotonic()
             outstanding = self.outstanding[i]
             while outstanding and outstanding.popleft()[:2] != (reply.episode, reply.step):
                 pass
@@ -241,11 +245,15 @@ class Driver:
         for i in self.rules.active:
             if i in self.dead or not self._drain(i):
                 continue
-            oldest = self.outstanding[i][0] if self.outstanding[i] else None
-            if self.clocked and oldest is not None and now - oldest[2] > self._stall_limit(i):
+            if not self.clocked or not self.outstanding[i]:
+                continue
+            oldest = self.outstanding[i][0]
+            # stalled: silent for one of its periods since an overdue request's deadline (answers that still
+            # come, however late, show a slow link, not a stall)
+            if now - max(oldest[2], self.heard.get(i, 0.0)) > self._stall_limit(i):
                 self._fault(i, f"layer {self.rules.layers[i].name!r} left step {oldest[1]}'s request unanswered "
-                               f"for one of its periods past its deadline ({self._stall_limit(i) * 1e3:.0f} ms): "
-                               "stalled")
+                               f"and was silent for one of its periods past its deadline "
+                               f"({self._stall_limit(i) * 1e3:.0f} ms): stalled")
 
     def _listen(self, until: float) -> None:
         """Until the monotonic time `until` (the next step), take each answer as it comes, so that its time
@@ -274,14 +282,12 @@ class Driver:
 
     def _take(self, i: int, reply: Any) -> None:
         """A late answer, or one of a delayed layer: put it in its decision's place by the rules."""
-        if reply.episode != self.episode:
+        decision = self.asked.get((i, reply.episode, reply.step))
+        if decision is None or decision.output is not None:
             return
-        decision = next((d for d in self.pending[i] if d.step == reply.step and d.output is None), None)
-        if decision is None:
-            return  # its layer decided again before it came: dropped
         self._answer(decision, reply)
-        if self.rules.amend(i, decision.age, reply.output) == "late":
-            decision.landed = self.t
+        if decision in self.pending[i] and self.rules.amend(i, decision.age, reply.output) == "late":
+            decision.landed = self.t  # (not pending: its layer decided again before it came, so it is dropped)
 
     def _fault(self, i: int, message: str) -> None:
         """A layer's process died or stalled: stop it, then go on without it or stop, as the settings say."""

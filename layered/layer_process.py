@@ -15,7 +15,9 @@ import json
 import multiprocessing
 import os
 import re
+import queue
 import signal
+import threading
 import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -121,21 +123,19 @@ class Fault:
 
 
 class Server:
-    """A layer's policy answering requests, with its link's delays and the fault it is to inject."""
+    """A layer's policy answering requests, with the fault it is to inject."""
 
-    def __init__(self, directory: str | Path, backend: str, name: str, link: Link, fault: Fault | None,
-                 seed: int) -> None:
+    def __init__(self, directory: str | Path, backend: str, name: str, fault: Fault | None) -> None:
         import torch
 
         from layered.runtime import load_policy
 
         torch.set_num_threads(1)
-        self.name, self.link, self.fault = name, link, fault
+        self.name, self.fault = name, fault
         self.policy = load_policy(directory, name, backend)
         dims = int(json.loads((Path(directory) / "stack.json").read_text())["observation_dims"][name])
         for _ in range(WARMUP_CALLS):
             self.policy(np.zeros(dims, np.float32))
-        self.rng = np.random.default_rng(seed)
         self.count = 0
 
     def answer(self, request: object) -> Reply | Refusal | None:
@@ -149,19 +149,11 @@ class Server:
             if self.fault.kind == "die":
                 os._exit(1)
             return None
-        self._travel()  # the request's way here
         received = time.time()
         start = time.perf_counter()
         output = np.asarray(self.policy(request.view), np.float32)
         compute = time.perf_counter() - start
-        replied = time.time()
-        self._travel()  # the reply's way back
-        return Reply(PROTOCOL, self.name, request.episode, request.step, output, compute, received, replied)
-
-    def _travel(self) -> None:
-        """Hold a message for one sample of the link's delay."""
-        if self.link.mean_s:
-            time.sleep(self.link.sample(self.rng))
+        return Reply(PROTOCOL, self.name, request.episode, request.step, output, compute, received, time.time())
 
 
 def check_reply(name: str, message: object) -> Reply:
@@ -179,33 +171,70 @@ def serve(connection: Connection, directory: str, backend: str, name: str, link:
           seed: int) -> None:
     """The layer process: load the policy, say it is ready, then answer requests until the driver hangs up."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops this process
-    server = Server(directory, backend, name, link, fault, seed)
+    server = Server(directory, backend, name, fault)
     connection.send(("ready", PROTOCOL, name, os.getpid()))
-    while True:
-        try:
-            request = connection.recv()
-        except (EOFError, OSError):
-            return  # the driver is gone
-        if request is None:
-            return
+    if link.mean_s:
+        _serve_over_link(connection, server, link, np.random.default_rng(seed))
+        return
+    while (request := _receive_or_none(connection)) is not None:
         reply = server.answer(request)
         if reply is None:
-            _stall(connection)
+            while _receive_or_none(connection) is not None:  # stalled: alive, answering nothing
+                pass
             return
         connection.send(reply)
         if isinstance(reply, Refusal):
             return
 
 
-def _stall(connection: Connection) -> None:
-    """Stay alive answering nothing, until the driver hangs up or is gone."""
-    while True:
-        if connection.poll(1.0):
-            try:
-                if connection.recv() is None:
-                    return
-            except (EOFError, OSError):
+def _receive_or_none(connection: Connection) -> object:
+    """The next message; None when the driver hangs up or is gone."""
+    try:
+        return connection.recv()
+    except (EOFError, OSError):
+        return None
+
+
+def _serve_over_link(connection: Connection, server: Server, link: Link, rng: np.random.Generator) -> None:
+    """Answer as `serve` does, each message held for a sample of the link's delay on its way in and out.
+    A link delays messages without holding up the ones behind them: a reader thread stamps each
+    request's arrival, and a writer thread sends each reply at its own release time."""
+    inbox: queue.Queue[tuple[float, object]] = queue.Queue()
+    outbox: queue.Queue[tuple[float, object] | None] = queue.Queue()
+
+    def read() -> None:
+        while True:
+            message = _receive_or_none(connection)
+            inbox.put((time.monotonic(), message))
+            if message is None:
                 return
+
+    def write() -> None:
+        while (item := outbox.get()) is not None:
+            release, reply = item
+            time.sleep(max(0.0, release - time.monotonic()))
+            try:
+                connection.send(reply)
+            except OSError:
+                return
+
+    threading.Thread(target=read, daemon=True).start()
+    writer = threading.Thread(target=write, daemon=True)
+    writer.start()
+    stalled = False
+    while (item := inbox.get())[1] is not None:
+        arrival, request = item
+        if stalled:
+            continue
+        time.sleep(max(0.0, arrival + link.sample(rng) - time.monotonic()))
+        reply = server.answer(request)
+        stalled = reply is None
+        if reply is not None:
+            outbox.put((time.monotonic() + link.sample(rng), reply))
+        if isinstance(reply, Refusal):
+            break
+    outbox.put(None)
+    writer.join(5.0)
 
 
 class LayerEnd(Protocol):

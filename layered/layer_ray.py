@@ -21,12 +21,11 @@ from layered.layer_process import Fault, LayerFault, Link, Reply, Request, Serve
 class _Served:
     """The actor: a `Server` over the files it was given."""
 
-    def __init__(self, files: dict[str, bytes], backend: str, name: str, link: Link, fault: Fault | None,
-                 seed: int) -> None:
+    def __init__(self, files: dict[str, bytes], backend: str, name: str, fault: Fault | None) -> None:
         self.folder = tempfile.mkdtemp(prefix=f"layered-{name}-")
         for file, data in files.items():
             (Path(self.folder) / file).write_bytes(data)
-        self.server = Server(self.folder, backend, name, link, fault, seed)
+        self.server = Server(self.folder, backend, name, fault)
 
     def pid(self) -> int:
         return os.getpid()
@@ -49,10 +48,15 @@ class RayLayer:
     """The driver's end of one layer's Ray actor: start it, send requests, take replies, stop it."""
 
     def __init__(self, name: str, directory: Path, backend: str, link: Link, fault: Fault | None, seed: int) -> None:
+        """`link` must be none: a cluster's network delays are real (`--link-delay` emulates them between
+        local processes); `seed` only seeds the link, so it is unused here."""
+        if link.mean_s:
+            raise LayerFault("--link-delay emulates a link between local processes; with Ray actors the "
+                             "network's own delays apply")
         suffix = {"torchscript": ".pt", "onnx": ".onnx"}[backend]
         files = {file: (directory / file).read_bytes() for file in (f"{name}{suffix}", "stack.json")}
         self.name = name
-        self.actor = _actor_class().remote(files, backend, name, link, fault, seed)
+        self.actor = _actor_class().remote(files, backend, name, fault)
         self.replies: deque[Any] = deque()  # object refs of the requests sent, oldest first
         self.pid: int | None = None
         self.waitable: Any = None  # Ray's object refs are waited on by `ray.wait`: the driver polls

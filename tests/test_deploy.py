@@ -213,6 +213,17 @@ def test_a_timeline_traced_by_hand_late_answers_of_a_delayed_slow_layer_take_eff
     assert m["delay_seen"] == {"2": 3, "3": 1} and (m["missed"], m["late"], m["dropped"]) == (1, 1, 0)
 
 
+def test_a_link_slower_than_a_step_delays_answers_without_queueing_them(tmp_path):
+    run = untrained("pendulum/tla-c.toml", [], tmp_path)
+    # steps of 10 ms, a round trip of 16 ms: every fast answer misses its step, and none waits for the one before
+    [row] = deploy(run, [Settings(speed=5.0, links={"fast": Link(8e-3)})], episodes=1, out=tmp_path / "deploy",
+                   notify=lambda _: None)
+    fast = row["layers"]["fast"]
+    assert not row["faults"] and row["steps"] == 200
+    assert 16 <= fast["latency_ms"]["median"] < 16 + 5 and fast["latency_ms"]["p99"] < 16 + 15
+    assert fast["miss_rate"] > 0.9 and row["layers"]["slow"]["miss_rate"] < 0.1
+
+
 # --- faults ---------------------------------------------------------------------------------------------
 
 
