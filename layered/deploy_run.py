@@ -161,8 +161,6 @@ def table(rows: Sequence[dict[str, Any]]) -> str:
 def plot(rows: Sequence[dict[str, Any]], out_png: Path, title: str) -> None:
     """Return, latency, misses and delay seen against the settings, one line per layer."""
     plt = pyplot()
-    from matplotlib.ticker import ScalarFormatter
-
     labels = [row["setting"] for row in rows]
     x = np.arange(len(rows))
     fig, axes = plt.subplots(1, 4, figsize=(17, 3.8), constrained_layout=True)
@@ -179,8 +177,7 @@ def plot(rows: Sequence[dict[str, Any]], out_png: Path, title: str) -> None:
         delay.plot(x, [np.nan if layer["mean_delay_seen"] is None else layer["mean_delay_seen"] for layer in layers],
                    marker="o", label=name)
     latency.set_ylabel("decision latency p99 (ms)")
-    latency.set_yscale("log")
-    latency.yaxis.set_major_formatter(ScalarFormatter())
+    latency.set_ylim(bottom=0)
     missed.set_ylabel("deadlines missed (%)")
     delay.set_ylabel("mean delay seen (base steps)")
     for ax in axes:

@@ -117,7 +117,8 @@ def test_ctrl_c_while_the_command_starts_is_one_line(tmp_path):
     script = ("import sys; from layered.command import main; print('ready', file=sys.stderr, flush=True); "
               "sys.argv[0] = 'layered'; sys.exit(main())")
     proc = subprocess.Popen([sys.executable, "-c", script, "train", str(TLA_C), "--out", str(tmp_path / "run")],
-                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as at a terminal
     assert proc.stderr.readline().strip() == "ready"
     time.sleep(0.3)  # into main, which then loads torch (seconds), not in the two statements before it
     proc.send_signal(signal.SIGINT)

@@ -344,12 +344,18 @@ def test_a_speed_that_is_not_a_positive_number_is_a_usage_error(trained, capsys)
         assert stop.value.code == 2 and "argument --speed" in capsys.readouterr().err
 
 
+def _interruptible():
+    """In the child before it starts: Ctrl-C as at a terminal, even where this test runs in the background
+    (a shell's background jobs inherit SIGINT ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_stops_the_driver_and_every_layer_process(trained, tmp_path):
     out = tmp_path / "deploy"
     command = [sys.executable, "-m", "layered.cli", "deploy", str(trained), "--speed", "1", "--episodes", "20",
                "--out", str(out)]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               start_new_session=True)
+                               start_new_session=True, preexec_fn=_interruptible)
     deadline = time.monotonic() + 120
     while not (out / "export-torchscript" / "stack.json").exists() and time.monotonic() < deadline:
         time.sleep(0.2)
