@@ -391,7 +391,6 @@ def _deploy(args: argparse.Namespace) -> int:
     settings = ([Settings(lockstep=True, links=links, faults=faults, on_fault=args.on_fault)] if args.lockstep
                 else []) + [Settings(speed, False, links, faults, args.on_fault) for speed in speeds]
     out = args.out or args.run_dir / "deploy"
-    out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(EXIT_SIGNAL["SIGTERM"]))  # so that every process is stopped
     if args.address and args.transport != "ray":

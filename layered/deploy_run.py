@@ -18,7 +18,7 @@ from layered.envs import control_timestep, make_env
 from layered.evaluate import run_episode
 from layered.export import export_stack
 from layered.latency import TOLERANCE
-from layered.layer_process import LayerEnd, LayerProcess, Link
+from layered.layer_process import LayerEnd, LayerFault, LayerProcess, Link
 from layered.ray_cluster import start_ray
 from layered.report import pyplot
 from layered.rules import Rules
@@ -67,6 +67,10 @@ def deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: Pa
     """Deploy `run` under each of `settings` for `episodes` episodes, its layers carried by `transport`
     (Ray: on the cluster at `address`, default a local one); one row of measures per setting, each also
     written to `out/<label>.json`."""
+    if transport == "ray" and any(link.mean_s for setting in settings for link in setting.links.values()):
+        raise LayerFault("--link-delay emulates a link between local processes; with Ray actors the network's "
+                         "own delays apply")
+    out.mkdir(parents=True, exist_ok=True)
     ray = start_ray(address) if transport == "ray" else None
     try:
         return _deploy(run, settings, episodes, out, threshold, notify, transport)

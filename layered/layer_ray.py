@@ -48,11 +48,8 @@ class RayLayer:
     """The driver's end of one layer's Ray actor: start it, send requests, take replies, stop it."""
 
     def __init__(self, name: str, directory: Path, backend: str, link: Link, fault: Fault | None, seed: int) -> None:
-        """`link` must be none: a cluster's network delays are real (`--link-delay` emulates them between
-        local processes); `seed` only seeds the link, so it is unused here."""
-        if link.mean_s:
-            raise LayerFault("--link-delay emulates a link between local processes; with Ray actors the "
-                             "network's own delays apply")
+        """`link` and `seed` are unused: a cluster's network delays are real (`deploy` refuses emulated links
+        with Ray actors)."""
         suffix = {"torchscript": ".pt", "onnx": ".onnx"}[backend]
         files = {file: (directory / file).read_bytes() for file in (f"{name}{suffix}", "stack.json")}
         self.name = name

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from types import ModuleType
 
 
@@ -12,5 +13,6 @@ def start_ray(address: str | None = None) -> ModuleType:
     except ImportError:
         raise RuntimeError("Ray needs the optional extra: pip install -e '.[ray]' in the checkout") from None
     ray.init(address=address, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True,
+             logging_level=logging.ERROR,  # Ray's own start-up notices would interleave with the command's lines
              runtime_env={"env_vars": {"OMP_NUM_THREADS": "1"}})
     return ray

@@ -327,6 +327,7 @@ def test_deploy_command_writes_what_it_prints_and_leaves_no_process(trained, tmp
     (["--link-delay", "mid=5ms"], "name a layer of this stack (slow, fast)"),
     (["--fault", "fast:hang@3"], "die@N or stall@N"),
     (["--link-delay", "5"], "is not a duration"),
+    (["--link-delay", "5ms", "--transport", "ray"], "with Ray actors the network's own delays apply"),
 ])
 def test_bad_deploy_options_are_refused_in_one_line(trained, capsys, args, message):
     out = trained
