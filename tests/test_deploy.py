@@ -220,7 +220,8 @@ def test_a_link_slower_than_a_step_delays_answers_without_queueing_them(tmp_path
                    notify=lambda _: None)
     fast = row["layers"]["fast"]
     assert not row["faults"] and row["steps"] == 200
-    assert 16 <= fast["latency_ms"]["median"] < 16 + 5 and fast["latency_ms"]["p99"] < 16 + 15
+    # (answers queued behind each other would come later and later: hundreds of ms within the episode)
+    assert 16 <= fast["latency_ms"]["median"] < 30 and fast["latency_ms"]["p99"] < 60
     assert fast["miss_rate"] > 0.9 and row["layers"]["slow"]["miss_rate"] < 0.1
 
 
