@@ -381,10 +381,12 @@ def _deploy(args: argparse.Namespace) -> int:
     from layered.deploy_run import deploy, table
     from layered.run_evals import open_run
 
+    if args.address and args.transport != "ray":
+        return _fail("--address names a Ray cluster: give it with --transport ray")
     run = open_run(args.run_dir, args.weights, args.plugin)
     try:
-        links = _per_layer(args.link_delay, "=", Link.parse, run.active, "--link-delay")
-        faults = _per_layer(args.fault, ":", Fault.parse, run.active, "--fault")
+        links = _per_layer(args.link_delay, "=", Link.parse, run.active, "--link-delay", bare_for_all=True)
+        faults = _per_layer(args.fault, ":", Fault.parse, run.active, "--fault", bare_for_all=False)
     except ValueError as e:
         return _fail(str(e))
     speeds = args.speed or ([] if args.lockstep else [1.0])
@@ -393,8 +395,6 @@ def _deploy(args: argparse.Namespace) -> int:
     out = args.out or args.run_dir / "deploy"
     torch.set_num_threads(1)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(EXIT_SIGNAL["SIGTERM"]))  # so that every process is stopped
-    if args.address and args.transport != "ray":
-        return _fail("--address names a Ray cluster: give it with --transport ray")
     try:
         rows = deploy(run, settings, args.episodes, out, args.threshold, transport=args.transport,
                       address=args.address)
@@ -411,12 +411,12 @@ def _deploy(args: argparse.Namespace) -> int:
 
 
 def _per_layer(values: list[str], separator: str, parse: Callable[[str], Any], layers: list[str],
-               option: str) -> dict[str, Any]:
-    """`LAYER<sep>value` entries (or a bare value, for every layer) parsed per layer name."""
+               option: str, bare_for_all: bool) -> dict[str, Any]:
+    """`LAYER<sep>value` entries parsed per layer name; with `bare_for_all`, a bare value is every layer's."""
     out = {}
     for value in values:
         name, found, text = value.partition(separator)
-        if not found and separator == "=":
+        if not found and bare_for_all:
             out.update({layer: parse(value) for layer in layers})
             continue
         if not found or name not in layers:

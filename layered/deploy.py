@@ -106,10 +106,9 @@ class Driver:
         self.faults: list[str] = []
         self.dead: set[int] = set()
         self.stash: list[tuple[int, Any]] = []  # answers that came while another was awaited: applied next step
-        # per layer, the requests not yet answered, oldest first, as (episode, step, from when a stall counts:
-        # the deadline, or the sending where the driver ran late): a process answers in order, so an answer
-        # settles every request before its own
-        self.outstanding: dict[int, deque[tuple[int, int, float]]] = {i: deque() for i in rules.active}
+        # per layer, the requests sent and not yet answered, oldest first: a process answers in order, so an
+        # answer settles every request before its own
+        self.outstanding: dict[int, deque[Decision]] = {i: deque() for i in rules.active}
         self.heard: dict[int, float] = {}  # when each layer last answered (monotonic)
         self.episode = -1
         self.t = 0
@@ -167,7 +166,7 @@ class Driver:
         self.decisions.append(decision)
         self.asked[i, self.episode, self.t] = decision
         self.pending[i].append(decision)
-        if not self._ask(i, Request(PROTOCOL, layer.name, self.episode, self.t, view[0], decision.sent_wall)):
+        if not self._ask(i, decision, Request(PROTOCOL, layer.name, self.episode, self.t, view[0], decision.sent_wall)):
             return placeholder
         if layer.delay and self.clocked:
             return placeholder  # its answer is put in its place in flight when it comes (`_take`)
@@ -188,10 +187,10 @@ class Driver:
             else:
                 decision.missed = True
 
-    def _ask(self, i: int, request: Request) -> bool:
+    def _ask(self, i: int, decision: Decision, request: Request) -> bool:
         try:
             self.processes[i].send(request)
-            self.outstanding[i].append((request.episode, request.step, max(self._deadline(i), time.monotonic())))
+            self.outstanding[i].append(decision)
             return True
         except LayerFault as e:
             self._fault(i, str(e))
@@ -224,8 +223,8 @@ class Driver:
         reply = self.processes[i].receive(timeout_s)
         if reply is not None:
             self.heard[i] = time.monotonic()
-            outstanding = self.outstanding[i]
-            while outstanding and outstanding.popleft()[:2] != (reply.episode, reply.step):
+            answered, outstanding = self.asked.get((i, reply.episode, reply.step)), self.outstanding[i]
+            while outstanding and outstanding.popleft() is not answered:
                 pass
         return reply
 
@@ -248,10 +247,10 @@ class Driver:
             if not self.clocked or not self.outstanding[i]:
                 continue
             oldest = self.outstanding[i][0]
-            # stalled: silent for one of its periods since an overdue request's deadline (answers that still
-            # come, however late, show a slow link, not a stall)
-            if now - max(oldest[2], self.heard.get(i, 0.0)) > self._stall_limit(i):
-                self._fault(i, f"layer {self.rules.layers[i].name!r} left step {oldest[1]}'s request unanswered "
+            # stalled: silent for one of its periods since an overdue request's deadline, or its sending where
+            # the driver ran late (answers that still come, however late, show a slow link, not a stall)
+            if now - max(oldest.deadline, oldest.sent, self.heard.get(i, 0.0)) > self._stall_limit(i):
+                self._fault(i, f"layer {self.rules.layers[i].name!r} left step {oldest.step}'s request unanswered "
                                f"and was silent for one of its periods past its deadline "
                                f"({self._stall_limit(i) * 1e3:.0f} ms): stalled")
 
