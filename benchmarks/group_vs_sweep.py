@@ -8,6 +8,7 @@ divided by K; a sweep's largest worker).
 
     python benchmarks/group_vs_sweep.py                                   # Pendulum TD3, K = 1, 4, 8, on CPU
     python benchmarks/group_vs_sweep.py --recipe recipes/pendulum/tla-c.toml --seeds 4
+    python benchmarks/group_vs_sweep.py --seeds 8 --set learner.precision=bfloat16
     python benchmarks/group_vs_sweep.py --recipe recipes/hopper/td3-realtime.toml --device cuda --seeds 1,4,16,64
 """
 
@@ -48,13 +49,16 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="the group's torch threads")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a recipe setting for both sides, e.g. learner.precision=bfloat16 (repeatable)")
     args = parser.parse_args()
     layered = str(Path(sys.executable).with_name("layered"))
     settings = [f"train.warmup={args.warmup}", "eval.episodes=1", "eval.fresh_episodes=0", "eval.every=100000000",
-                f"learner.device={args.device}"]
+                f"learner.device={args.device}", *args.set]
     phases = _phases(args.recipe)
     print(f"{Path(args.recipe).parent.name}/{Path(args.recipe).stem}, {args.steps} steps x {phases} phases per seed, "
-          f"device {args.device}; group: {args.threads} threads; sweep: --jobs {args.jobs}, 1 thread each\n")
+          f"device {args.device}{''.join(f', {x}' for x in args.set)}; group: {args.threads} threads; sweep: "
+          f"--jobs {args.jobs}, 1 thread each\n")
     print("| K | group, steps/s | sweep, steps/s | group / sweep | MiB per seed: group / sweep |")
     print("|---|---|---|---|---|")
     for k in (int(x) for x in args.seeds.split(",")):

@@ -17,10 +17,12 @@ from layered.envs.registry import (
     env_info,
     env_spaces,
     make_env,
+    restore_env,
+    snapshot_env,
     split_id,
 )
 
 __all__ = [
     "FAMILIES", "EnvFamily", "EnvInfo", "EnvSpaces", "RenderingUnavailable", "control_timestep", "env_info",
-    "env_spaces", "make_env", "split_id",
+    "env_spaces", "make_env", "restore_env", "snapshot_env", "split_id",
 ]

@@ -8,13 +8,16 @@ the end of an episode into `terminated` (discount 0) or `truncated` (the time li
 from __future__ import annotations
 
 import difflib
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium.spaces import Box
 
 from layered.envs.registry import FAMILIES, EnvFamily, EnvInfo
+
+if TYPE_CHECKING:
+    from layered.envs.state import StateRules
 
 # Every suite task pays a reward in [0, 1] per control step over 1000 steps.
 SUITE_RETURN_RANGE = (0.0, 1000.0)
@@ -85,3 +88,13 @@ class DmControlFamily(EnvFamily):
     def info(self, name: str) -> EnvInfo:
         self._split(name)
         return EnvInfo(return_range=SUITE_RETURN_RANGE, episode_steps=SUITE_EPISODE_STEPS)
+
+    def state_rules(self) -> StateRules:
+        """The common rules and dm_control's physics, which wraps its MuJoCo model and data."""
+        from dm_control.mujoco.engine import Physics
+
+        from layered.envs.mujoco_state import load_physics, save_physics
+        from layered.envs.state import Capture, StateRules
+
+        physics = Capture("dm_control_physics", (Physics,), save_physics, load_physics)
+        return super().state_rules() + StateRules(captures=(physics,), static=())

@@ -1,11 +1,12 @@
-"""The registry of environment families and the per-environment constants the metrics need."""
+"""The registry of environment families, the per-environment constants the metrics need, and snapshots of
+environments that a checkpoint taken mid-episode continues exactly."""
 
 from __future__ import annotations
 
 import functools
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -13,6 +14,9 @@ from gymnasium.spaces import Box, Space
 
 from layered.envs.rendering import RenderingUnavailable, check_can_render
 from layered.registry import Registry
+
+if TYPE_CHECKING:
+    from layered.envs.state import StateRules
 
 DEFAULT_FAMILY = "gym"
 
@@ -45,6 +49,32 @@ class EnvFamily(ABC):
         dt = getattr(env.unwrapped, "dt", None)
         return None if dt is None else float(dt)
 
+    def state_rules(self) -> StateRules:
+        """What a snapshot captures beyond plain data (envs/state.py): random generators, MuJoCo models and
+        data (imported here, so that importing the envs loads neither torch nor MuJoCo)."""
+        from layered.envs.mujoco_state import MUJOCO
+        from layered.envs.state import GENERATORS, INTERFACE
+
+        return GENERATORS + MUJOCO + INTERFACE
+
+    def snapshot(self, env_id: str, env: gym.Env) -> dict[str, Any]:
+        """Everything needed to continue `env` (made by `make_env(env_id)`) exactly, mid-episode or not."""
+        from layered.envs.state import StateError, StateWalk
+
+        try:
+            return StateWalk(self.state_rules(), functools.partial(_fresh_env, env_id)).save(env)
+        except StateError as error:
+            raise ValueError(f"{env_id} cannot be checkpointed mid-episode: {error}") from None
+
+    def restore(self, env_id: str, env: gym.Env, state: dict[str, Any]) -> None:
+        """Put `env` (made by `make_env(env_id)`, used or not) into the state `snapshot` saved."""
+        from layered.envs.state import StateError, StateWalk
+
+        try:
+            StateWalk(self.state_rules(), functools.partial(_fresh_env, env_id)).restore(env, state)
+        except StateError as error:
+            raise ValueError(f"cannot restore a snapshot into {env_id}: {error}") from None
+
 
 FAMILIES: Registry[type[EnvFamily]] = Registry("environment family")
 
@@ -66,6 +96,25 @@ def make_env(env_id: str, render_mode: str | None = None) -> gym.Env:
             env.close()
             raise
     return env
+
+
+@functools.cache
+def _fresh_env(env_id: str) -> gym.Env:
+    """An env of `env_id` as made, never reset: what snapshots save the changes of MuJoCo models against."""
+    return make_env(env_id)
+
+
+def snapshot_env(env_id: str, env: gym.Env) -> dict[str, Any]:
+    """Everything needed to continue `env` exactly, as tensors and plain data (`torch.load(weights_only=True)`
+    reads it); a ValueError naming `env_id` where some of its state cannot be captured."""
+    family, _ = split_id(env_id)
+    return FAMILIES.get(family)().snapshot(env_id, env)
+
+
+def restore_env(env_id: str, env: gym.Env, state: dict[str, Any]) -> None:
+    """Put `env`, made by `make_env(env_id)` and used or not, into the state `snapshot_env` saved."""
+    family, _ = split_id(env_id)
+    FAMILIES.get(family)().restore(env_id, env, state)
 
 
 @dataclass(frozen=True)

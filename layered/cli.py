@@ -9,7 +9,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -119,7 +119,7 @@ def _parser() -> argparse.ArgumentParser:
     rs = sub.add_parser("resume", help="continue a stopped run from its last checkpoint",
                         epilog="the run continues with the recipe and --steps it was started with, but for the "
                         "settings --set changes")
-    rs.add_argument("run_dir", type=Path, help="run directory of a stopped run")
+    rs.add_argument("run_dir", type=Path, help="run directory of a stopped run, or of a stopped group or its seeds")
     rs.add_argument("--steps", type=_positive, help="must be the --steps the run was started with (a check)")
     rs.add_argument("--threads", type=_positive, help="torch threads (use 1 per process when running several)")
     rs.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
@@ -242,6 +242,7 @@ def _train(args: argparse.Namespace) -> int:
 
 def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[str]) -> int:
     from layered.group import check_group, group_recipes, train_group
+    from layered.group_state import clear_group
     from layered.rundir import clear_run_dir
 
     if args.seed is not None:
@@ -255,18 +256,27 @@ def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[s
     for run in outs:
         if args.force and run.is_dir():
             clear_run_dir(run)
+    if args.force:
+        clear_group(out)
     print(f"training {args.recipe}, seeds {args.seeds} as one group -> {out}", file=sys.stderr)
     results = train_group(recipes, outs, f"{source.parent.name}/{source.stem}", args.steps, plugins=plugins)
-    for seed, rows in zip(args.seeds, results, strict=True):
+    return _group_finished(out, args.seeds, results)
+
+
+def _group_finished(out: Path, seeds: Sequence[int], results: list[list[dict[str, Any]]]) -> int:
+    for seed, rows in zip(seeds, results, strict=True):
         print(f"seed {seed}: " + ", ".join(f"phase {row['phase']} return {row['return_mean']:.1f}" for row in rows))
     print(f"run directories: {out}/seed<k>; tables and figures: layered report {out}")
     return 0
 
 
 def _resume(args: argparse.Namespace) -> int:
+    from layered.group_state import group_dir
     from layered.rundir import read_run_info
     from layered.runs import resume
 
+    if (directory := group_dir(args.run_dir)) is not None:
+        return _resume_group(args, directory)
     load_plugins(read_run_info(args.run_dir).plugins)
     if (args.run_dir / "results.json").exists():
         print(f"{args.run_dir} has finished; nothing to resume", file=sys.stderr)
@@ -274,6 +284,21 @@ def _resume(args: argparse.Namespace) -> int:
     print(f"resuming {args.run_dir}", file=sys.stderr)
     resume(args.run_dir, max_steps=args.steps, settings=args.settings)
     return _finished(args.run_dir)
+
+
+def _resume_group(args: argparse.Namespace, directory: Path) -> int:
+    from layered.group import resume_group
+    from layered.group_state import group_info, seed_dirs
+
+    if args.settings:
+        return _fail("--set: a group resumes with the settings it was started with")
+    info = group_info(directory)
+    load_plugins(info.plugins)
+    if all((out / "results.json").exists() for out in seed_dirs(directory, info.group)):
+        print(f"the group in {directory} has finished; nothing to resume", file=sys.stderr)
+        return 0
+    print(f"resuming the group of seeds {list(info.group)} in {directory}", file=sys.stderr)
+    return _group_finished(directory, info.group, resume_group(directory, max_steps=args.steps))
 
 
 def _finished(out: Path) -> int:
@@ -540,7 +565,7 @@ def _how_to_continue(args: argparse.Namespace) -> str:
     if args.command == "deploy":
         return "every layer's process was stopped; the settings that finished are written"
     run = getattr(args, "out", None) or getattr(args, "run_dir", None)
-    if run is not None and (run / "run.json").exists():
+    if run is not None and ((run / "run.json").exists() or any(run.glob("seed*/run.json"))):
         return f"continue from the last checkpoint with: layered resume {run}"
     return "nothing was saved; run the same command again"
 

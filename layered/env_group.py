@@ -8,17 +8,19 @@ after the other in this process.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from gymnasium.spaces import Box
 
-from layered.envs import make_env
+from layered.envs import make_env, restore_env, snapshot_env
 
 
 class EnvGroup:
     """K environments with their latest observations as one `[K, obs]` array."""
 
     def __init__(self, env_id: str, rows: int) -> None:
+        self.env_id = env_id
         self.envs = [make_env(env_id) for _ in range(rows)]
         space = self.envs[0].observation_space
         action_space = self.envs[0].action_space
@@ -44,6 +46,16 @@ class EnvGroup:
             self.obs[k], r, terminated[k], truncated[k], _ = self.envs[k].step(actions[k])
             reward[k] = float(r)
         return reward, terminated, truncated
+
+    def snapshots(self) -> list[dict[str, Any]]:
+        """Each row's simulator state, mid-episode or not, as `restore` takes it (for a group's checkpoint)."""
+        return [snapshot_env(self.env_id, env) for env in self.envs]
+
+    def restore(self, snapshots: Sequence[dict[str, Any]], obs: np.ndarray) -> None:
+        """Put every row where `snapshots` found it, `obs` its latest observations."""
+        for env, snapshot in zip(self.envs, snapshots, strict=True):
+            restore_env(self.env_id, env, snapshot)
+        self.obs[:] = obs
 
     def close(self) -> None:
         for env in self.envs:

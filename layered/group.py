@@ -26,8 +26,21 @@ import torch
 
 from layered.checkpoint import save_checkpoint
 from layered.env_group import EnvGroup
+from layered.envs import make_env, snapshot_env
 from layered.events import EventLog
 from layered.group_eval import all_rows, evaluate_group
+from layered.group_state import (
+    GroupCheckpoint,
+    Pending,
+    PhaseLoop,
+    check_new_group,
+    clear_group,
+    group_info,
+    load_group,
+    save_group,
+    seed_dirs,
+)
+from layered.interrupt import StopRequest, Stopped
 from layered.learner_set import build_learners, keep_start_weights, start_from_weights
 from layered.learners.td3_group import GroupLosses, TD3Group
 from layered.logs import CsvLog
@@ -35,15 +48,16 @@ from layered.orders import Phase
 from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
-from layered.rundir import RunInfo, check_new_run_dir, prepare_run_dir, writing
+from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
 from layered.rules import Rules
 from layered.runs import unavailable_settings, warmup_warnings
-from layered.runstate import LoopState, UpdateStats
+from layered.runstate import LoopState, UpdateStats, recipe_digest
 from layered.stack import Stack
 from layered.trainer import (
     FRESH_MEASURES,
     Diverged,
     PhaseResult,
+    checkpoint_interval,
     curve_auc,
     phase_budget,
     phase_row,
@@ -63,22 +77,6 @@ class Seed:
     state: LoopState = field(default_factory=LoopState)
 
 
-@dataclass
-class Pending:
-    """Per row, a learning layer's latest decision and what has followed it: its next transitions."""
-
-    seen: np.ndarray
-    output: np.ndarray
-    reward: np.ndarray
-    elapsed: np.ndarray
-    open: np.ndarray  # whether the row has decided this episode
-
-    @classmethod
-    def empty(cls, rows: int, obs: int, size: int) -> Pending:
-        return cls(np.zeros((rows, obs), np.float32), np.zeros((rows, size), np.float32), np.zeros(rows),
-                   np.zeros(rows, np.int64), np.zeros(rows, bool))
-
-
 def check_group(recipe: Recipe) -> None:
     """Refuse, naming each key, what keeps a recipe from training as a group."""
     out = []
@@ -88,45 +86,99 @@ def check_group(recipe: Recipe) -> None:
             out.append((f"layers[{i}].learner.kind", f"layer {layer.name!r} uses the {kind!r} learner, which does "
                         "not train as a group yet (train its seeds with `layered sweep`)"))
     out += unavailable_settings(recipe)
+    if (problem := _checkpoint_problem(recipe.env.id)) is not None:
+        out.append(("env.id", f"{problem}; a group checkpoints its environments mid-episode (train its seeds "
+                              "with `layered sweep`)"))
     if out:
         raise RecipeError("recipe", out)
 
 
+def _checkpoint_problem(env_id: str) -> str | None:
+    """Why an environment of `env_id`, once reset, cannot be snapshotted (None if it can)."""
+    env = make_env(env_id)
+    try:
+        env.reset(seed=0)
+        snapshot_env(env_id, env)
+    except ValueError as e:
+        return str(e)
+    finally:
+        env.close()
+    return None
+
+
 def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max_steps: int | None = None,
-                progress: bool = True, plugins: Sequence[str] = ()) -> list[list[dict[str, Any]]]:
-    """Train the recipes (one recipe's seeds: they differ in `train.seed` alone) as one group, seed k
-    into `outs[k]`; the results rows of every phase, per seed."""
+                progress: bool = True, plugins: Sequence[str] = (), resume: bool = False) -> list[list[dict[str, Any]]]:
+    """Train the recipes (one recipe's seeds: they differ in `train.seed` alone) as one group, seed k into
+    `outs[k]` (the group's directory's `seed<k>` folders); the results rows of every phase, per seed.
+
+    With `resume`, the group continues from its last checkpoint (one stopped before its first starts over).
+    Raises Stopped when SIGINT or SIGTERM stopped it, after a checkpoint at the step under way.
+    """
     check_group(recipes[0])
-    for out in outs:
-        check_new_run_dir(out)  # before anything is built or written
+    directory = outs[0].parent
+    numbers = [recipe.train.seed for recipe in recipes]
+    if list(outs) != seed_dirs(directory, numbers):
+        raise ValueError(f"a group's run directories are its directory's seed<k> folders, not {list(outs)[:2]}...")
+    if not resume:
+        check_new_group(directory, outs)  # before anything is built or written
     for warning in warmup_warnings(recipes[0], max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
-    singles = []
-    for recipe in recipes:
-        learners = build_learners(recipe)
-        start_from_weights(recipe, learners)
-        singles.append(learners)
-    info = RunInfo(label, max_steps, tuple(plugins), tuple(recipe.train.seed for recipe in recipes))
+    singles = [build_learners(recipe) for recipe in recipes]
+    if not resume:
+        for recipe, learners in zip(recipes, singles, strict=True):
+            start_from_weights(recipe, learners)
+    info = RunInfo(label, max_steps, tuple(plugins), tuple(numbers))
+    digests = [recipe_digest(resolved(recipe)) for recipe in recipes]
     with ExitStack() as locks:
-        seeds = []
-        for recipe, out, learners in zip(recipes, outs, singles, strict=True):
+        for out in outs:
             locks.enter_context(writing(out))
-            prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume=False)
-            keep_start_weights(recipe, learners, out / "checkpoints")
-            seeds.append(Seed(recipe, out, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
-                              CsvLog(out / "episodes.csv", EPISODE_FIELDS),
-                              EventLog(out / "tensorboard") if recipe.log.tensorboard else None))
-        for seed in seeds:
-            seed.metrics.start()
-            seed.episodes.start()
-        group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress)
+        saved = load_group(directory, numbers, digests, max_steps) if resume else None
+        if saved is None:
+            clear_group(directory)
+        else:
+            print(f"layered: the group continues from its checkpoint in phase {saved.states[0].phase} at step "
+                  f"{saved.loop.step}", file=sys.stderr)
+        resumed_at = None if saved is None else (saved.states[0].phase, saved.loop.step)
+        seeds = []
+        for k, (recipe, out, learners) in enumerate(zip(recipes, outs, singles, strict=True)):
+            prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume=saved is not None)
+            seed = Seed(recipe, out, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
+                        CsvLog(out / "episodes.csv", EPISODE_FIELDS),
+                        EventLog(out / "tensorboard", resumed_at) if recipe.log.tensorboard else None)
+            if saved is None:
+                keep_start_weights(recipe, learners, out / "checkpoints")
+                seed.metrics.start()
+                seed.episodes.start()
+            else:
+                seed.state = saved.states[k]
+                seed.metrics.truncate(seed.state.log_sizes["metrics"])
+                seed.episodes.truncate(seed.state.log_sizes["episodes"])
+            seeds.append(seed)
+        stop = StopRequest()
+        group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop)
         del singles
-        group.train()
+        try:
+            with stop.installed():
+                group.train(saved)
+        finally:
+            for seed in seeds:
+                if seed.events is not None:
+                    seed.events.close()
         for seed in seeds:
             write_results(seed.recipe, seed.state.rows, seed.out, label)
-            if seed.events is not None:
-                seed.events.close()
+        clear_group(directory)  # every seed's run directory now holds its results
     return [seed.state.rows for seed in seeds]
+
+
+def resume_group(directory: Path, max_steps: int | None = None, progress: bool = True) -> list[list[dict[str, Any]]]:
+    """Continue the stopped group in `directory` from its last checkpoint, with the recipes it was started with."""
+    info = group_info(directory)
+    if max_steps is not None and max_steps != info.max_steps:
+        raise RunDirError(f"{directory}: the group was started with {steps_option(info.max_steps)}, not "
+                          f"{steps_option(max_steps)}")
+    outs = seed_dirs(directory, info.group)
+    recipes = [load_recipe(out / "recipe.toml") for out in outs]
+    return train_group(recipes, outs, info.label, info.max_steps, progress, info.plugins, resume=True)
 
 
 def _stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]) -> dict[str, TD3Group]:
@@ -138,21 +190,32 @@ def _stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]
 
 
 class Group:
-    """K seeds of a recipe training together, phase by phase."""
+    """K seeds of a recipe training together, phase by phase, checkpointing every `checkpoint_every` steps."""
 
-    def __init__(self, seeds: list[Seed], learners: dict[str, TD3Group], max_steps: int | None, progress: bool):
+    def __init__(self, seeds: list[Seed], learners: dict[str, TD3Group], max_steps: int | None, progress: bool,
+                 directory: Path, digests: list[str], stop: StopRequest) -> None:
         self.seeds, self.learners, self.max_steps, self.progress = seeds, learners, max_steps, progress
+        self.directory, self.digests, self.stop = directory, digests, stop
         self.recipe = seeds[0].recipe
         self.rows = len(seeds)
         self.names = self.recipe.layer_names()
 
-    def train(self) -> None:
-        """Every phase of the training order, each seed's results row recorded at its end."""
-        phases = phases_of(self.recipe)
-        for p, phase in enumerate(phases):
-            for seed in self.seeds:
-                seed.state.start_phase(p, phase.learn, self.recipe.eval.every, self.recipe.eval.every)
-            results = self.run_phase(phase, phase_budget(self.recipe, phase, self.max_steps))
+    def train(self, saved: GroupCheckpoint | None = None) -> None:
+        """Every phase of the training order (from `saved`'s, where it stands), each seed's results row
+        recorded at its end."""
+        start = -1 if saved is None else saved.states[0].phase  # (the states go on to later phases)
+        if saved is not None:
+            for name, learner in self.learners.items():
+                learner.load_resume_state(saved.learners[name])
+            torch.set_rng_state(saved.torch_rng)
+        for p, phase in enumerate(phases_of(self.recipe)):
+            if p < start:
+                continue  # its results rows are in the seeds' states
+            if p > start:
+                for seed in self.seeds:
+                    seed.state.start_phase(p, phase.learn, self.recipe.eval.every, checkpoint_interval(self.recipe))
+            resumed = saved if p == start else None
+            results = self.run_phase(phase, phase_budget(self.recipe, phase, self.max_steps), resumed)
             rows = self._finish_phase(phase, results)
             for seed, row in zip(self.seeds, rows, strict=True):
                 seed.state.finish_phase(row)
@@ -165,19 +228,26 @@ class Group:
         rules = Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, self.rows)
         return stack, rules, envs
 
-    def run_phase(self, phase: Phase, budget: int) -> list[PhaseResult]:
-        """Train `phase.learn` for `budget` base steps in every seed, the other present layers frozen."""
+    def run_phase(self, phase: Phase, budget: int, saved: GroupCheckpoint | None = None) -> list[PhaseResult]:
+        """Train `phase.learn` for `budget` base steps in every seed, the other present layers frozen, from
+        the start or from where `saved` stands."""
         stack, rules, envs = self._stacks(phase, evaluation=False)
         evaluator = self._stacks(phase, evaluation=True)
         p = self.seeds[0].state.phase
         learn = [self.names.index(name) for name in phase.learn]
         warmups = {i: self.recipe.warmup(self.names[i]) for i in learn}
-        pending = {i: Pending.empty(self.rows, stack.observation_spaces[i].shape[0], stack.layers[i].rules.size)
-                   for i in learn}
+        loop = PhaseLoop(0, {i: Pending.empty(self.rows, stack.observation_spaces[i].shape[0],
+                                              stack.layers[i].rules.size) for i in learn},
+                         np.zeros(self.rows), np.zeros(self.rows, np.int64))
         decisions = {i: np.zeros(self.rows, np.int64) for i in learn}
+        if saved is not None:
+            loop = saved.loop
+            for i in learn:
+                decisions[i][:] = [seed.state.decisions[self.names[i]] for seed in self.seeds]
+        pending = loop.pending
         losses: dict[str, list[GroupLosses]] = {self.names[i]: [] for i in learn}
         every = np.ones(self.rows, bool)
-        bar = Progress(f"phase {p}: {'+'.join(phase.learn)} ({self.rows} seeds)", budget, 0, self.progress)
+        bar = Progress(f"phase {p}: {'+'.join(phase.learn)} ({self.rows} seeds)", budget, loop.step, self.progress)
 
         def act(i: int, seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
             full = all_rows(seen, deciding)
@@ -194,60 +264,98 @@ class Group:
             return outputs[deciding]
 
         try:
-            self._evaluate(phase, evaluator, losses, 0, bar)
-            envs.reset(every, [seed.recipe.train.seed + p for seed in self.seeds])
-            rules.reset()
-            returns, lengths = np.zeros(self.rows), np.zeros(self.rows, np.int64)
-            step = 0
-            while step < budget:
+            self._begin(phase, saved, rules, envs, evaluator, losses, bar)
+            while loop.step < budget:
                 decided = rules.decide_all(envs.obs, act)
                 for i, rows in decided.items():
                     if i in pending:
                         pending[i].output[rows] = rules.decided[i][rows]
-                        _check_finite(rules.decided[i][rows], "action", f"layer {self.names[i]!r}", p, step)
+                        _check_finite(rules.decided[i][rows], "action", f"layer {self.names[i]!r}", p, loop.step)
                 composition = rules.compose()
                 reward, terminated, truncated = envs.step(composition.action, every)
-                _check_finite(envs.obs, "observation", "the environment", p, step)
+                _check_finite(envs.obs, "observation", "the environment", p, loop.step)
                 shares = rules.layer_rewards(reward, composition)
                 rules.tick()
                 for i, mine in pending.items():
                     mine.reward += np.where(mine.open, shares[i], 0.0)
                     mine.elapsed += mine.open
-                returns += reward
-                lengths += 1
-                step += 1
+                loop.returns += reward
+                loop.lengths += 1
+                loop.step += 1
                 bar.advance(1)
                 ended = terminated | truncated
                 if ended.any():
                     for i, mine in pending.items():
                         self._store(i, mine, ended & mine.open, rules.observation(i, envs.obs), terminated, stack)
                         mine.open[ended] = False
-                    self._log_episodes(ended, p, step, returns, lengths)
+                    self._log_episodes(ended, p, loop)
                     envs.reset(ended, [None] * self.rows)
                     rules.reset(ended)
                 for i in learn:
                     self._update(self.names[i], decided[i] & (decisions[i] > warmups[i]), losses)
-                if step >= self.seeds[0].state.next_eval:
-                    self._evaluate(phase, evaluator, losses, step, bar)
-                    for seed in self.seeds:
-                        seed.state.next_eval += self.recipe.eval.every
-            if self.seeds[0].state.curve[-1][0] != step:
-                self._evaluate(phase, evaluator, losses, step, bar)
+                self._due(phase, loop, {self.names[i]: d for i, d in decisions.items()}, losses, rules, envs,
+                          evaluator, bar)
+            if self.seeds[0].state.curve[-1][0] != loop.step:
+                self._evaluate(phase, evaluator, losses, loop.step, bar)
         finally:
             bar.close()
             envs.close()
             evaluator[2].close()
-        return [PhaseResult(p, phase, step, seed.state.curve[-1][1], curve_auc(self.recipe, seed.state.curve))
+        return [PhaseResult(p, phase, loop.step, seed.state.curve[-1][1], curve_auc(self.recipe, seed.state.curve))
                 for seed in self.seeds]
 
-    def _log_episodes(self, ended: np.ndarray, phase: int, step: int, returns: np.ndarray, lengths: np.ndarray
-                      ) -> None:
+    def _begin(self, phase: Phase, saved: GroupCheckpoint | None, rules: Rules, envs: EnvGroup,
+               evaluator: tuple[Stack, Rules, EnvGroup], losses: dict[str, list[GroupLosses]], bar: Progress) -> None:
+        """Start the phase (its evaluation at step 0 and every row's first, seeded episode), or put the
+        rules' rows and the environments where `saved` found them."""
+        if saved is not None:
+            envs.restore(saved.envs, saved.obs)
+            rules.load_state_dict(saved.rules)
+            return
+        self._evaluate(phase, evaluator, losses, 0, bar)
+        p = self.seeds[0].state.phase
+        envs.reset(np.ones(self.rows, bool), [seed.recipe.train.seed + p for seed in self.seeds])
+        rules.reset()
+
+    def _due(self, phase: Phase, loop: PhaseLoop, decisions: dict[str, np.ndarray],
+             losses: dict[str, list[GroupLosses]], rules: Rules, envs: EnvGroup,
+             evaluator: tuple[Stack, Rules, EnvGroup], bar: Progress) -> None:
+        """What is due after a step: an evaluation, a checkpoint, and the stop a signal asked for."""
+        state = self.seeds[0].state
+        if loop.step >= state.next_eval:
+            self._evaluate(phase, evaluator, losses, loop.step, bar)
+            for seed in self.seeds:
+                seed.state.next_eval += self.recipe.eval.every
+        if loop.step >= state.next_checkpoint or self.stop.requested:
+            self._checkpoint(loop, decisions, losses, rules, envs)
+        if self.stop.requested:
+            raise Stopped(self.stop.requested, state.phase, loop.step, self.directory)
+
+    def _checkpoint(self, loop: PhaseLoop, decisions: dict[str, np.ndarray], losses: dict[str, list[GroupLosses]],
+                    rules: Rules, envs: EnvGroup) -> None:
+        """Save where the group stands, at any step: each seed's loop state (its losses read back first and
+        its logs' sizes), the phase's open transitions, the rules' rows, the environments and the learners."""
+        _read_back(losses, self.seeds, loop.step)
+        interval = checkpoint_interval(self.recipe)
+        for k, seed in enumerate(self.seeds):
+            state = seed.state
+            state.step = loop.step
+            state.decisions = {name: int(d[k]) for name, d in decisions.items()}
+            while state.next_checkpoint <= loop.step:
+                state.next_checkpoint += interval
+            state.log_sizes = {"metrics": seed.metrics.size(), "episodes": seed.episodes.size()}
+        save_group(self.directory, [seed.recipe.train.seed for seed in self.seeds], self.digests, self.max_steps,
+                   GroupCheckpoint([seed.state for seed in self.seeds], loop, rules.state_dict(), envs.snapshots(),
+                                   envs.obs, {name: g.resume_state() for name, g in self.learners.items()},
+                                   torch.get_rng_state()))
+
+    def _log_episodes(self, ended: np.ndarray, phase: int, loop: PhaseLoop) -> None:
         """Log the episodes that ended in the `ended` rows, and start their counts again."""
         for k in np.flatnonzero(ended):
-            row = {"phase": phase, "step": step, "return": returns[k], "length": int(lengths[k])}
+            row = {"phase": phase, "step": loop.step, "return": loop.returns[k], "length": int(loop.lengths[k])}
             self.seeds[k].episodes.write(row)
             self.seeds[k].state.episode += 1
-        returns[ended], lengths[ended] = 0.0, 0
+        loop.returns[ended], loop.lengths[ended] = 0.0, 0
 
     def _update(self, name: str, ready: np.ndarray, losses: dict[str, list[GroupLosses]]) -> None:
         """Layer `name`'s updates (`updates` per decision) in the seeds of the `ready` mask."""
@@ -271,14 +379,15 @@ class Group:
                   step: int, bar: Progress) -> None:
         """Evaluate every seed's present layers now and log its row, with its mean losses since the last."""
         results = self._evaluations(phase, evaluator, self.recipe.eval.episodes, self.recipe.eval.seed_offset)
-        per_seed = _read_back(losses, self.rows, self.seeds[0].state.phase, step)
+        _read_back(losses, self.seeds, step)
         for k, (seed, result) in enumerate(zip(self.seeds, results, strict=True)):
             state = seed.state
             state.curve.append((step, result))
             if state.best_index() == len(state.curve) - 1:
                 state.best = {name: self.learners[name].seed_state_dict(k) for name in phase.learn}
             row = {"phase": state.phase, "learn": "+".join(phase.learn), "step": step, **result.row(),
-                   **mean_losses(per_seed[k], {n: TD3Group.loss_names for n in phase.learn})}
+                   **mean_losses(state.losses, {n: TD3Group.loss_names for n in phase.learn})}
+            state.losses = {name: [] for name in phase.learn}
             seed.metrics.write(row)
             if seed.events is not None:
                 seed.events.write(row)
@@ -330,12 +439,10 @@ class Group:
             row |= {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
 
 
-def _read_back(losses: dict[str, list[GroupLosses]], rows: int, phase: int, step: int
-               ) -> list[dict[str, list[UpdateStats]]]:
-    """The losses of each layer's updates since the last read-back, per seed (each update a seed took
-    part in, as the single loop's `UpdateStats`), read off the device in one copy per layer; a
-    non-finite one stops the group."""
-    out: list[dict[str, list[UpdateStats]]] = [{name: [] for name in losses} for _ in range(rows)]
+def _read_back(losses: dict[str, list[GroupLosses]], seeds: Sequence[Seed], step: int) -> None:
+    """Add the losses of each layer's updates since the last read-back to each seed's loop state (each
+    update a seed took part in, as the single loop's `UpdateStats`), read off the device in one copy per
+    layer; a non-finite one stops the group."""
     names = TD3Group.loss_names
     for name, updates in losses.items():
         if not updates:
@@ -347,17 +454,15 @@ def _read_back(losses: dict[str, list[GroupLosses]], rows: int, phase: int, step
                 stats: UpdateStats = {f"{n}_loss": float(v[k]) if took[k] else None for n, (v, took) in taken.items()}
                 stats |= {f"{n}_loss": None for n in names if n not in taken}
                 _check_finite(np.array([v for v in stats.values() if v is not None]), "loss", f"layer {name!r}",
-                              phase, step)
-                out[k][name].append(stats)
+                              seeds[k].state.phase, step)
+                seeds[k].state.losses[name].append(stats)
         updates.clear()
-    return out
 
 
 def _check_finite(values: np.ndarray, what: str, who: str, phase: int, step: int) -> None:
     if not np.all(np.isfinite(values)):
-        raise Diverged(f"{who} met a non-finite {what} in phase {phase} at step {step} of a group; a group keeps "
-                       "no checkpoint yet: train it again with --force and a lower learning rate, or check the "
-                       "environment")
+        raise Diverged(f"{who} met a non-finite {what} in phase {phase} at step {step} of a group; train the group "
+                       "again with --force and a lower learning rate, or check the environment")
 
 
 def group_recipes(path: str | Path, seeds: Sequence[int], overrides: Sequence[str]) -> list[Recipe]:

@@ -135,6 +135,19 @@ class Rules:
         return cls(layers, [names.index(name) for name in data["active"]], np.asarray(data["action_low"]),
                    np.asarray(data["action_high"]), rows)
 
+    def state_dict(self) -> dict[str, list[np.ndarray] | np.ndarray]:
+        """Where every row stands (clocks, held outputs, outputs in flight, decisions), to continue exactly."""
+        return {"t": self.t.copy(), "held": [h.copy() for h in self.held],
+                "inflight": [f.copy() for f in self.inflight], "resume_at": [r.copy() for r in self.resume_at],
+                "decided": [d.copy() for d in self.decided]}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Put every row where `state_dict` found it."""
+        self.t[:] = state["t"]
+        for name in ("held", "inflight", "resume_at", "decided"):
+            for mine, saved in zip(getattr(self, name), state[name], strict=True):
+                mine[:] = saved
+
     def observation_bounds(self, i: int, obs_low: np.ndarray, obs_high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The bounds of what layer i sees (see `observation`), given the environment's observation bounds."""
         layer = self.layers[i]

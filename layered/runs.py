@@ -175,8 +175,8 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
     run_dir = Path(run_dir)
     info = read_run_info(run_dir)
     if info.group:
-        raise RunDirError(f"{run_dir}: the run was trained in a group of seeds {list(info.group)}, and a group does "
-                          "not checkpoint yet: train the group again with --force")
+        raise RunDirError(f"{run_dir}: the run trains in a group of seeds {list(info.group)}; continue the group "
+                          f"with `layered resume {run_dir.parent}`")
     if max_steps is not None and max_steps != info.max_steps:
         raise RunDirError(f"{run_dir}: the run was started with {steps_option(info.max_steps)}, not "
                           f"{steps_option(max_steps)}")

@@ -149,10 +149,11 @@ def run_job(job: Job) -> Outcome:
 
 def run_group(jobs: Sequence[Job]) -> list[Outcome]:
     """Train the seeds of one setup (the `jobs`, which differ in their seed alone) as one group in this
-    process (`layered.group`), its output going to the setup folder's group.log. A group keeps no
-    checkpoint: seeds left unfinished by an earlier group are trained again from the start, and a
-    signal stops the group at once."""
+    process (`layered.group`), its output going to the setup folder's group.log. A group stopped by a
+    signal, or killed, continues from its last checkpoint when the same sweep runs again."""
     from layered.group import train_group
+    from layered.group_state import has_group_checkpoint
+    from layered.interrupt import Stopped
     from layered.rundir import clear_run_dir
 
     if all((job.out / "results.json").exists() for job in jobs):
@@ -160,25 +161,29 @@ def run_group(jobs: Sequence[Job]) -> list[Outcome]:
     if _stopped():
         return [_not_started(job) for job in jobs]
     load_plugins(jobs[0].plugins)
-    for job in jobs:
-        if job.out.is_dir():
-            clear_run_dir(job.out)
-    log_path = jobs[0].out.parent / "group.log"
+    directory = jobs[0].out.parent
+    resume = has_group_checkpoint(directory)
+    if not resume:
+        for job in jobs:
+            if job.out.is_dir():
+                clear_run_dir(job.out)
+    log_path = directory / "group.log"
     log_path.parent.mkdir(parents=True, exist_ok=True)
-    before = signal.signal(signal.SIGTERM, signal.default_int_handler)
     with log_path.open("a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
         try:
             results = train_group([load_recipe(job.recipe) for job in jobs], [job.out for job in jobs], jobs[0].label,
-                                  jobs[0].max_steps, progress=True, plugins=jobs[0].plugins)
-        except KeyboardInterrupt:
+                                  jobs[0].max_steps, progress=True, plugins=jobs[0].plugins, resume=resume)
+        except Stopped as e:
+            print(f"stopped: {e}", file=log)
+            return [Outcome(job, "stopped", f"phase {e.phase}, step {e.step}; the same sweep again resumes its group")
+                    for job in jobs]
+        except KeyboardInterrupt:  # a second signal: at once, from the last checkpoint
             print("stopped at once", file=log)
-            return [Outcome(job, "stopped", "a group keeps no checkpoint: the same sweep trains it again")
+            return [Outcome(job, "stopped", "at once; the same sweep again resumes its group from its last checkpoint")
                     for job in jobs]
         except Exception as e:  # reported per job; the sweep goes on with the others
             print(f"failed: {e.__class__.__name__}: {e}", file=log)
             return [Outcome(job, "failed", f"{e.__class__.__name__}: {e} (see {log_path})") for job in jobs]
-        finally:
-            signal.signal(signal.SIGTERM, before)
     return [Outcome(job, "done", f"return {rows[-1]['return_mean']:.1f}, repetition {rows[-1]['repetition']:.1%}")
             for job, rows in zip(jobs, results, strict=True)]
 

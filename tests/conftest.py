@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from collections import deque
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
+import numpy as np
 import pytest
 import torch
 
@@ -79,3 +82,30 @@ def stop_at_episode_end(monkeypatch, k: int) -> None:
         original(run, env, state)
 
     monkeypatch.setattr(trainer, "_end_episode", end_episode)
+
+
+class RememberingEnv(gym.Env):
+    """A toy env that keeps its recent actions in a deque, a type snapshots have no capture for."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        self.render_mode = render_mode
+        self.recent: deque[float] = deque(maxlen=3)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.recent.clear()
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        self.recent.append(float(action[0]))
+        return np.array([np.mean(self.recent)], np.float32), 0.0, False, False, {}
+
+
+@pytest.fixture
+def remembering_env_id():
+    gym.register("Remembering-v0", entry_point=RememberingEnv, max_episode_steps=10)
+    yield "Remembering-v0"
+    del gym.registry["Remembering-v0"]

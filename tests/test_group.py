@@ -10,6 +10,7 @@ from layered.agents import make_aec_env
 from layered.cli import main
 from layered.evaluate import evaluate
 from layered.group import Group, Seed, _stack_learners, group_recipes
+from layered.interrupt import StopRequest
 from layered.learner_set import build_learners, load_learners
 from layered.logs import CsvLog
 from layered.results import EPISODE_FIELDS, metrics_fields
@@ -30,7 +31,8 @@ def tiny_group(recipe, seeds, tmp_path, overrides=()):
     for seed in seeds_:
         seed.metrics.start()
         seed.episodes.start()
-    return Group(seeds_, _stack_learners(recipes, singles), None, False), recipes, singles
+    group = Group(seeds_, _stack_learners(recipes, singles), None, False, tmp_path, [""] * len(recipes), StopRequest())
+    return group, recipes, singles
 
 
 def stored(group, name, k):

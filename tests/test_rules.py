@@ -265,3 +265,23 @@ def test_deferring_scales_rewards_up_to_zero_and_down_above_and_penalises_deviat
     # fast: the action penalty (|a| / fast half-range 2) and the deviation from the proposed 1.0 (/ half-range 2)
     # (a deferring gate's own action is not executed: the actions are the fast layer's 0.0 and -1.0)
     assert shares[1].tolist() == [pytest.approx(0.5 - 0.0 - 0.5), pytest.approx(-0.5 - 0.5 - 1.0)]
+
+
+def test_rules_restored_from_their_state_step_on_as_the_rules_they_were_taken_from():
+    """A 3-layer stack with delays, a gate and repeats, two rows out of step: its state taken mid-episode
+    and put into new rules, both go on identically; the state is a copy, not a view."""
+    settings = {"delay": [1, 0, 1], "max_repeat": [1, 3, 1]}
+    rules = rules_of([4, 2, 1], ["gate", "residual-clip", "residual-clip"], 2, **settings)
+    outputs = [[lambda t, k=k, i=i: output(k, i, t, 0, rules.layers[i].size, rules.layers[i].low, rules.layers[i].high)
+                for k in range(2)] for i in range(3)]
+    outputs[1][0] = lambda t: rules.layers[1].high  # row 0's middle layer repeats its decisions three times
+    obs = np.zeros((2, 3), np.float32)
+    play(rules, obs, outputs, 7, {3: [True, False]})
+    state = rules.state_dict()
+    restored = rules_of([4, 2, 1], ["gate", "residual-clip", "residual-clip"], 2, **settings)
+    restored.load_state_dict(state)
+    ahead = play(rules, obs, outputs, 9, {4: [False, True]})
+    assert int(state["t"][0]) == 4 and rules.t[0] != 4  # taken before the steps above
+    behind = play(restored, obs, outputs, 9, {4: [False, True]})
+    for (d1, a1, s1), (d2, a2, s2) in zip(ahead, behind, strict=True):
+        assert d1 == d2 and a1 == a2 and np.array_equal(s1, s2)

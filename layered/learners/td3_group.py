@@ -106,6 +106,18 @@ class StackedAdam:
             v.mul_(1 - (1 - self.beta2) * mask).addcmul_(grad, grad, value=1 - self.beta2)
             p.addcdiv_(m * step_size.view(shape), (v.sqrt() / root.view(shape)).add_(self.eps))
 
+    def state_dict(self) -> dict[str, Any]:
+        """Every seed's moments and step count, for resuming a group."""
+        return {"exp_avg": [m.clone() for m in self.exp_avg], "exp_avg_sq": [v.clone() for v in self.exp_avg_sq],
+                "steps": self.steps.clone()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what `state_dict` returned (the learning rate stays the configuration's)."""
+        for mine, saved in ((self.exp_avg, state["exp_avg"]), (self.exp_avg_sq, state["exp_avg_sq"])):
+            for t, value in zip(mine, saved, strict=True):
+                t.copy_(value)
+        self.steps.copy_(state["steps"])
+
     def seed_state(self, k: int) -> dict[str, Any]:
         """Seed k's part, in the layout of a single network's Adam (weights `[out, in]`, biases `[out]`)."""
         state = {}
@@ -154,8 +166,8 @@ class TD3Group:
         group's own generators (minibatch indices, smoothing, exploration and warm-up draws)."""
         first = learners[0]
         self.config: TD3Config = first.config
-        if self.config.precision != "float32" or self.config.compile != "off" or self.config.actor_anchor:
-            raise ValueError("a TD3 group runs in float32, eagerly, without actor_anchor (for now)")
+        if self.config.compile != "off" or self.config.actor_anchor:
+            raise ValueError("a TD3 group runs eagerly, without actor_anchor (for now)")
         self.k = len(learners)
         self.device = first.device
         self.action_space = first.action_space
@@ -262,13 +274,15 @@ class TD3Group:
         with standard-normal smoothing `noise`; the losses per seed."""
         obs, action, reward, next_obs, not_done, discount = batch
         cfg = self.config
-        with torch.no_grad():
+        with torch.no_grad(), self._precision():
             noise = (noise * cfg.policy_noise).clamp(-cfg.noise_clip, cfg.noise_clip)
             next_action = (self._actions(next_obs, self.actor_target) + noise * self.scale).clamp(self._low, self._high)
             pair = torch.cat([next_obs, next_action], dim=-1)
             target = reward + not_done * discount * torch.min(self.q1_target(pair), self.q2_target(pair))
-        pair = torch.cat([obs, action], dim=-1)
-        losses = (self.q1(pair) - target).square().mean(dim=(1, 2)) + (self.q2(pair) - target).square().mean(dim=(1, 2))
+        with self._precision():
+            pair = torch.cat([obs, action], dim=-1)
+            losses = ((self.q1(pair) - target).float().square().mean(dim=(1, 2))
+                      + (self.q2(pair) - target).float().square().mean(dim=(1, 2)))
         self.critic_opt.zero_grad()
         losses.sum().backward()
         self.critic_opt.step(self._mask(np.ones(self.k, bool)) if rows is None else rows)
@@ -278,8 +292,9 @@ class TD3Group:
         """One actor step of the seeds in `rows` (default all) through their Q1, then the soft update of
         their targets; the losses per seed."""
         rows = self._mask(np.ones(self.k, bool)) if rows is None else rows
-        q1 = self.q1(torch.cat([obs, self._actions(obs, self.actor)], dim=-1), frozen=True)
-        losses = -q1.mean(dim=(1, 2))
+        with self._precision():
+            q1 = self.q1(torch.cat([obs, self._actions(obs, self.actor)], dim=-1), frozen=True)
+            losses = -q1.float().mean(dim=(1, 2))
         self.actor_opt.zero_grad()
         losses.sum().backward()
         self.actor_opt.step(rows)
@@ -287,6 +302,38 @@ class TD3Group:
         _follow(*self._actor_pair, weight)
         _follow(*self._critic_pairs, weight)
         return losses.detach()
+
+    NETS = ("actor", "q1", "q2", "actor_target", "q1_target", "q2_target")
+
+    def resume_state(self) -> dict[str, Any]:
+        """Everything the group's later actions and updates depend on: networks, moments, each seed's
+        stored transitions and counts, and the generators; `load_resume_state` continues from it exactly."""
+        filled = int(self.sizes.max())
+        return {"nets": {name: getattr(self, name).state_dict() for name in self.NETS},
+                "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
+                "replay": self._rows[:, :filled].cpu().clone(), "sizes": self.sizes.cpu().clone(),
+                "next": self._next.cpu().clone(), "stored": torch.from_numpy(self._stored.copy()),
+                "updates": torch.from_numpy(self.updates.copy()), "torch_rng": self.torch_rng.get_state(),
+                "rng": self.rng.bit_generator.state}
+
+    def load_resume_state(self, state: dict[str, Any]) -> None:
+        """Continue from what `resume_state` returned."""
+        for name in self.NETS:
+            getattr(self, name).load_state_dict(state["nets"][name])
+        self.actor_opt.load_state_dict(state["actor_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        replay = state["replay"]
+        self._rows[:, : replay.shape[1]] = replay.to(self.device)
+        self.sizes.copy_(state["sizes"])
+        self._next.copy_(state["next"])
+        self._stored[:] = state["stored"].numpy()
+        self.updates[:] = state["updates"].numpy()
+        self.torch_rng.set_state(state["torch_rng"])
+        self.rng.bit_generator.state = state["rng"]
+
+    def _precision(self) -> torch.autocast:
+        """The precision of the update's matrix products (see TD3Config.precision): as a single learner's."""
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.precision == "bfloat16")
 
     def seed_state_dict(self, k: int) -> dict[str, Any]:
         """Seed k's networks as a single `TD3` learner's `state_dict` holds them (the optimisers' moments

@@ -1,0 +1,171 @@
+"""A group's checkpoint: where K seeds training together stand, saved at any step and continued exactly.
+
+A single run checkpoints at an episode end, where no simulator state needs keeping. A group's seeds end
+their episodes at different steps, so its checkpoint holds every environment's simulator state
+(`layered.envs.snapshot_env`) beside the rules' rows, each layer's stacked learners, the phase's open
+transitions and each seed's loop state. It is one file, `group.pt`, in the group's directory (the seeds'
+run directories are its `seed<k>` folders), written atomically beside its previous one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from layered.checkpoint import CheckpointError, load_latest, previous, save_checkpoint
+from layered.rundir import RunDirError, RunInfo, check_new_run_dir, read_run_info, steps_option
+from layered.runstate import LoopState
+
+GROUP_CHECKPOINT = "group.pt"
+
+
+@dataclass
+class Pending:
+    """Per row, a learning layer's latest decision and what has followed it: its next transitions."""
+
+    seen: np.ndarray
+    output: np.ndarray
+    reward: np.ndarray
+    elapsed: np.ndarray
+    open: np.ndarray  # whether the row has decided this episode
+
+    @classmethod
+    def empty(cls, rows: int, obs: int, size: int) -> Pending:
+        return cls(np.zeros((rows, obs), np.float32), np.zeros((rows, size), np.float32), np.zeros(rows),
+                   np.zeros(rows, np.int64), np.zeros(rows, bool))
+
+
+@dataclass
+class PhaseLoop:
+    """Where a group's phase stands besides its learners, rules, environments and seeds' loop states."""
+
+    step: int
+    pending: dict[int, Pending]  # per learning layer's index
+    returns: np.ndarray  # [K] of the episodes under way
+    lengths: np.ndarray
+
+
+@dataclass
+class GroupCheckpoint:
+    """A group's training state as loaded: the learners' part is handed to them, the rest to the loop."""
+
+    states: list[LoopState]
+    loop: PhaseLoop
+    rules: dict[str, Any]
+    envs: list[dict[str, Any]]
+    obs: np.ndarray
+    learners: dict[str, dict[str, Any]]
+    torch_rng: torch.Tensor
+
+
+def group_dir(run_dir: Path) -> Path | None:
+    """The directory of the group that `run_dir` (the group's own directory, or one of its seeds') belongs
+    to; None for a single run's directory."""
+    if (run_dir / "run.json").exists():
+        return run_dir.parent if read_run_info(run_dir).group else None
+    seeds = sorted(run_dir.glob("seed*/run.json"))
+    return run_dir if seeds and read_run_info(seeds[0].parent).group else None
+
+
+def group_info(directory: Path) -> RunInfo:
+    """How the group in `directory` was started (as each of its seeds' run.json says)."""
+    runs = sorted(directory.glob("seed*/run.json"))
+    if not runs:
+        raise RunDirError(f"{directory} holds no group of seeds (no seed<k>/run.json)")
+    return read_run_info(runs[0].parent)
+
+
+def seed_dirs(directory: Path, seeds: Sequence[int]) -> list[Path]:
+    """The run directories of a group's seeds."""
+    return [directory / f"seed{seed}" for seed in seeds]
+
+
+def save_group(directory: Path, seeds: list[int], digests: list[str], max_steps: int | None,
+               checkpoint: GroupCheckpoint) -> None:
+    """Write the group's checkpoint; the one it replaces is kept as its previous."""
+    loop = checkpoint.loop
+    save_checkpoint(directory / GROUP_CHECKPOINT, "group", {
+        "seeds": list(seeds), "recipe_digests": list(digests), "max_steps": max_steps,
+        "states": [state.to_json() for state in checkpoint.states], "best": [state.best for state in checkpoint.states],
+        "loop": {"step": loop.step, "pending": {str(i): _tensors(asdict(p)) for i, p in loop.pending.items()},
+                 "returns": _tensors(loop.returns), "lengths": _tensors(loop.lengths)},
+        "rules": _tensors(checkpoint.rules), "envs": checkpoint.envs, "obs": _tensors(checkpoint.obs),
+        "learners": checkpoint.learners, "torch_rng": checkpoint.torch_rng,
+    }, keep_previous=True)
+
+
+def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps: int | None
+               ) -> GroupCheckpoint | None:
+    """The group's newest usable checkpoint, or None if it has none; refused, in one line, when it was
+    taken for other seeds, recipes or `--steps`."""
+    saved = load_latest(directory / GROUP_CHECKPOINT, "group")
+    if saved is None:
+        return None
+    if saved["seeds"] != list(seeds):
+        raise CheckpointError(f"{directory}: the group's checkpoint is of seeds {saved['seeds']}, not {list(seeds)}")
+    changed = [seed for seed, a, b in zip(seeds, saved["recipe_digests"], digests, strict=True) if a != b]
+    if changed:
+        raise CheckpointError(f"{directory}: the recipe of seeds {changed} differs from the one the group's "
+                              "checkpoint was taken with")
+    if saved["max_steps"] != max_steps:
+        raise CheckpointError(f"{directory}: the group was started with {steps_option(saved['max_steps'])}, not "
+                              f"{steps_option(max_steps)}")
+    states = []
+    for text, best in zip(saved["states"], saved["best"], strict=True):
+        state = LoopState.from_json(text)
+        state.best = best
+        states.append(state)
+    loop = saved["loop"]
+    pending = {int(i): Pending(**_arrays(p)) for i, p in loop["pending"].items()}
+    return GroupCheckpoint(states, PhaseLoop(int(loop["step"]), pending, _arrays(loop["returns"]),
+                                             _arrays(loop["lengths"])),
+                           _arrays(saved["rules"]), saved["envs"], _arrays(saved["obs"]), saved["learners"],
+                           saved["torch_rng"])
+
+
+def _tensors(tree: Any) -> Any:
+    """`tree` with its numpy arrays as tensors, which a checkpoint loaded weights-only can hold."""
+    if isinstance(tree, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(tree).copy())
+    if isinstance(tree, dict):
+        return {key: _tensors(value) for key, value in tree.items()}
+    if isinstance(tree, list):
+        return [_tensors(value) for value in tree]
+    return tree
+
+
+def _arrays(tree: Any) -> Any:
+    """`tree` with its tensors as numpy arrays again (what `_tensors` was given)."""
+    if isinstance(tree, torch.Tensor):
+        return tree.numpy()
+    if isinstance(tree, dict):
+        return {key: _arrays(value) for key, value in tree.items()}
+    if isinstance(tree, list):
+        return [_arrays(value) for value in tree]
+    return tree
+
+
+
+def has_group_checkpoint(directory: Path) -> bool:
+    """Whether a stopped group waits in `directory` (its newest checkpoint, or the one before)."""
+    return (directory / GROUP_CHECKPOINT).exists() or previous(directory / GROUP_CHECKPOINT).exists()
+
+
+def check_new_group(directory: Path, outs: Sequence[Path]) -> None:
+    """Refuse to start a group over seeds' run directories that hold runs, or where a stopped group waits."""
+    for out in outs:
+        check_new_run_dir(out)
+    if has_group_checkpoint(directory):
+        raise RunDirError(f"{directory} holds a stopped group; continue it with `layered resume {directory}`, "
+                          "or --force to start over")
+
+
+def clear_group(directory: Path) -> None:
+    """Remove a group's checkpoints (a group starting over, or one whose seeds have all written their results)."""
+    for path in (directory / GROUP_CHECKPOINT, previous(directory / GROUP_CHECKPOINT)):
+        path.unlink(missing_ok=True)

@@ -1,0 +1,169 @@
+"""A group of seeds survives being stopped or killed: checkpointed at any step, mid-episode in every seed,
+it resumes to the very files of a group that never stopped."""
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import pytest
+from conftest import assert_same_run
+
+from layered.rundir import RunDirError
+from layered.cli import main
+from layered.group import Group, resume_group
+from layered.group_state import GROUP_CHECKPOINT, group_dir
+
+ROOT = Path(__file__).resolve().parent.parent
+TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=40", "eval.every=150", "eval.episodes=1",
+        "eval.fresh_episodes=1"]
+
+
+def stop_at(monkeypatch, moments):
+    """Ask the group to stop (as SIGINT would) after step `step` of phase `phase`, for each (phase, step)."""
+    original, left = Group._due, list(moments)
+
+    def due(self, phase, loop, *args):
+        if left and (self.seeds[0].state.phase, loop.step) == left[0]:
+            left.pop(0)
+            self.stop.requested = "SIGINT"
+        original(self, phase, loop, *args)
+
+    monkeypatch.setattr(Group, "_due", due)
+
+
+def assert_same_group(a: Path, b: Path, seeds) -> None:
+    for seed in seeds:
+        assert_same_run(a / f"seed{seed}", b / f"seed{seed}")
+    assert not (b / GROUP_CHECKPOINT).exists(), "a finished group keeps no checkpoint"
+
+
+@pytest.mark.parametrize("recipe, overrides, steps, moments", [
+    ("pendulum/tla-c.toml", [], 300, [(0, 137), (1, 1), (1, 299)]),  # mid-episode; a phase's first and last step
+    ("inverted-double-pendulum/tla-realtime.toml", [], 300, [(0, 101), (1, 151)]),  # delays in flight, early ends
+    ("pendulum/tla-o.toml", ["train.order=joint", "train.warmup=100"], 300, [(0, 177)]),  # a gate committing
+    ("dmc-cartpole-balance/td3.toml", [], 200, [(0, 123)]),  # a dm_control task
+])
+def test_a_group_stopped_mid_episode_resumes_to_the_same_files(recipe, overrides, steps, moments, tmp_path,
+                                                               monkeypatch):
+    command = ["train", str(ROOT / "recipes" / recipe), "--seeds", "0,3", "--steps", str(steps), *TINY, *overrides]
+    assert main([*command, "--out", str(tmp_path / "whole")]) == 0
+    out = tmp_path / "stopped"
+    stop_at(monkeypatch, moments)
+    assert main([*command, "--out", str(out)]) == 130
+    for _ in moments[1:]:
+        assert (out / GROUP_CHECKPOINT).exists()
+        assert main(["resume", str(out / "seed3")]) == 130  # a seed's directory resumes its group
+    monkeypatch.undo()
+    assert main(["resume", str(out)]) == 0
+    assert_same_group(tmp_path / "whole", out, (0, 3))
+
+
+def test_a_stopped_group_is_refused_a_new_start_and_other_steps_and_force_starts_over(tmp_path, monkeypatch, capsys):
+    command = ["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", "2", "--steps", "200", *TINY,
+               "--out", str(tmp_path / "g")]
+    stop_at(monkeypatch, [(0, 50)])
+    assert main(command) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith(f"continue with: layered resume {tmp_path / 'g'}")
+    monkeypatch.undo()
+    assert main(command) == 2
+    assert "holds a stopped group; continue it with `layered resume" in capsys.readouterr().err
+    with pytest.raises(RunDirError, match="--steps 200, not --steps 100"):
+        resume_group(tmp_path / "g", max_steps=100)
+    assert main(["resume", str(tmp_path / "g"), "--set", "learner.lr=0.001"]) == 2
+    assert group_dir(tmp_path / "g") == group_dir(tmp_path / "g" / "seed1") == tmp_path / "g"
+    assert main([*command, "--force"]) == 0
+    assert not (tmp_path / "g" / GROUP_CHECKPOINT).exists()
+    assert main(["resume", str(tmp_path / "g")]) == 0
+    assert "has finished; nothing to resume" in capsys.readouterr().err
+
+
+def test_a_sweep_of_groups_resumes_a_stopped_group(tmp_path, monkeypatch):
+    recipe = str(ROOT / "recipes/pendulum/td3.toml")
+    sweep = ["sweep", recipe, "--seeds", "2", "--steps", "200", "--vectorize", "--jobs", "1", *TINY]
+    assert main([*sweep, "--out", str(tmp_path / "whole")]) == 0
+    setup = next((tmp_path / "whole").rglob("seed0")).parent.relative_to(tmp_path / "whole")
+    out = tmp_path / "stopped"
+    stop_at(monkeypatch, [(0, 77)])  # the group the sweep would train, stopped by a signal
+    assert main(["train", recipe, "--seeds", "2", "--steps", "200", *TINY, "--out", str(out / setup)]) == 130
+    monkeypatch.undo()
+    assert main([*sweep, "--out", str(out)]) == 0
+    assert "continues from its checkpoint in phase 0 at step 77" in (out / setup / "group.log").read_text()
+    assert_same_group(tmp_path / "whole" / setup, out / setup, (0, 1))
+
+
+def layered(*args):
+    return subprocess.Popen([sys.executable, "-m", "layered.cli", *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def kill_when(proc: subprocess.Popen, ready, timeout: float) -> bool:
+    """SIGKILL `proc` as soon as `ready()` holds (or at `timeout`); False if it finished first."""
+    deadline = time.monotonic() + timeout
+    while proc.poll() is None:
+        if ready() or time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            return True
+        time.sleep(0.0005)
+    return False
+
+
+def writing(directory: Path) -> bool:
+    """Whether a checkpoint of the group is being written (its temporary file exists)."""
+    return bool(list(directory.glob(f".{GROUP_CHECKPOINT}.*")))
+
+
+def passed(moment: float) -> bool:
+    return time.monotonic() >= moment
+
+
+def test_a_group_killed_at_random_moments_and_mid_checkpoint_resumes_byte_identical(tmp_path):
+    """SIGKILL at random moments and once as soon as a checkpoint write is under way; resumed each time,
+    the group ends with the files of one never killed; SIGINT and SIGTERM then stop it in one line."""
+    run = ["train", ROOT / "recipes/inverted-double-pendulum/tla-realtime.toml", "--seeds", "0,1", "--steps", 600,
+           *TINY, "train.checkpoint_every=50", "--threads", 1]
+    whole, out = tmp_path / "whole", tmp_path / "killed"
+    assert layered(*run, "--out", whole).wait() == 0
+    proc, rng, kills = layered(*run, "--out", out), random.Random(3), 0
+    for k in range(4):
+        ready = partial(writing, out) if k == 1 else partial(passed, time.monotonic() + rng.uniform(1.0, 4.0))
+        if not kill_when(proc, ready, timeout=10.0):
+            break
+        kills += 1
+        started = (out / "seed0" / "run.json").exists()
+        proc = layered("resume", out, "--threads", 1) if started else layered(*run, "--out", out)
+    signalled = 0
+    for signum, code in ((signal.SIGINT, 130), (signal.SIGTERM, 143)):
+        checkpoint = out / GROUP_CHECKPOINT
+        before = checkpoint.stat().st_mtime_ns if checkpoint.exists() else None
+        while (not checkpoint.exists() or checkpoint.stat().st_mtime_ns == before) and proc.poll() is None:
+            time.sleep(0.01)  # until this process has written a checkpoint of its own
+        if proc.poll() is not None:
+            break
+        os.kill(proc.pid, signum)
+        _, err = proc.communicate()
+        assert proc.returncode == code, err
+        assert "Traceback" not in err and err.strip().splitlines()[-1].endswith(f"layered resume {out}")
+        signalled += 1
+        proc = layered("resume", out, "--threads", 1)
+    _, err = proc.communicate()
+    assert proc.returncode == 0, err
+    assert (kills, signalled) == (4, 2), "the group finished before it was killed and signalled; lengthen it"
+    assert_same_group(whole, out, (0, 1))
+
+
+def test_an_environment_that_cannot_be_checkpointed_is_refused_before_a_group_starts(remembering_env_id, tmp_path,
+                                                                                       capsys):
+    out = tmp_path / "g"
+    assert main(["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", "2", f"env.id={remembering_env_id}",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "env.id" in err[0] and "recent holds a deque" in err[0] and "layered sweep" in err[0]
+    assert not out.exists()
