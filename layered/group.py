@@ -42,6 +42,7 @@ from layered.group_state import (
 )
 from layered.interrupt import StopRequest, Stopped
 from layered.learner_set import build_learners, keep_start_weights, start_from_weights
+from layered.learners.choice_group import GateTD3Group
 from layered.learners.td3_group import GroupLosses, TD3Group
 from layered.logs import CsvLog
 from layered.orders import Phase
@@ -65,6 +66,11 @@ from layered.trainer import (
 )
 
 
+GroupLearner = TD3Group | GateTD3Group
+STACKED: dict[str, type[TD3Group] | type[GateTD3Group]] = {"td3": TD3Group, "td3-gate": GateTD3Group}
+"""The learners a group stacks over its seeds, by kind (each takes the seeds' single learners of that kind)."""
+
+
 @dataclass
 class Seed:
     """One seed of a group: its recipe, its run directory and logs, and its loop state."""
@@ -82,7 +88,7 @@ def check_group(recipe: Recipe) -> None:
     out = []
     for i, layer in enumerate(recipe.layers):
         kind = recipe.learner_config(i).kind
-        if kind != "td3":
+        if kind not in STACKED:
             out.append((f"layers[{i}].learner.kind", f"layer {layer.name!r} uses the {kind!r} learner, which does "
                         "not train as a group yet (train its seeds with `layered sweep`)"))
     out += unavailable_settings(recipe)
@@ -181,10 +187,10 @@ def resume_group(directory: Path, max_steps: int | None = None, progress: bool =
     return train_group(recipes, outs, info.label, info.max_steps, progress, info.plugins, resume=True)
 
 
-def _stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]) -> dict[str, TD3Group]:
+def _stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]) -> dict[str, GroupLearner]:
     """Each layer's learners of every seed as one group, its generators seeded by the layer and the seeds."""
     seeds = [recipe.train.seed for recipe in recipes]
-    return {name: TD3Group([learners[name] for learners in singles],
+    return {name: STACKED[recipes[0].learner_config(i).kind]([learners[name] for learners in singles],
                            seed=int(np.random.SeedSequence([i, *seeds]).generate_state(1)[0]))
             for i, name in enumerate(recipes[0].layer_names())}
 
@@ -192,7 +198,7 @@ def _stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]
 class Group:
     """K seeds of a recipe training together, phase by phase, checkpointing every `checkpoint_every` steps."""
 
-    def __init__(self, seeds: list[Seed], learners: dict[str, TD3Group], max_steps: int | None, progress: bool,
+    def __init__(self, seeds: list[Seed], learners: dict[str, GroupLearner], max_steps: int | None, progress: bool,
                  directory: Path, digests: list[str], stop: StopRequest) -> None:
         self.seeds, self.learners, self.max_steps, self.progress = seeds, learners, max_steps, progress
         self.directory, self.digests, self.stop = directory, digests, stop

@@ -37,9 +37,7 @@ def tiny_group(recipe, seeds, tmp_path, overrides=()):
 
 def stored(group, name, k):
     """Seed k's transitions of layer `name` in the order stored: obs, action, reward, next obs, not done, discount."""
-    learner = group.learners[name]
-    rows = learner._rows[k, : int(learner.sizes[k])].numpy()
-    return [rows[:, a:b] for a, b in zip(learner._cuts, learner._cuts[1:], strict=False)]
+    return group.learners[name].replay.seed_rows(k)
 
 
 @pytest.mark.parametrize("recipe, overrides", [

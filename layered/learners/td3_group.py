@@ -14,141 +14,22 @@ single `TD3` learner's `state_dict`, so that each seed can be written, evaluated
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
+from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, follow, masked
 from layered.learners.td3 import TD3, TD3Config
 
 
-class StackedMLP(nn.Module):
-    """K multilayer perceptrons of the same shape, one per seed, as `[K, in, out]` weights."""
-
-    def __init__(self, mlps: Sequence[nn.Sequential]) -> None:
-        super().__init__()
-        layers = [[m for m in mlp if isinstance(m, nn.Linear)] for mlp in mlps]
-        stacked = []
-        for j in range(len(layers[0])):  # weight, bias, weight, bias ...: the order of an MLP's parameters
-            stacked.append(nn.Parameter(torch.stack([seed[j].weight.detach().T for seed in layers]).contiguous()))
-            stacked.append(nn.Parameter(torch.stack([seed[j].bias.detach()[None] for seed in layers]).contiguous()))
-        self.stacked = nn.ParameterList(stacked)
-
-    @property
-    def weights(self) -> list[torch.Tensor]:
-        """Each layer's weights, [K, in, out]."""
-        return list(self.stacked)[0::2]
-
-    @property
-    def biases(self) -> list[torch.Tensor]:
-        """Each layer's biases, [K, 1, out]."""
-        return list(self.stacked)[1::2]
-
-    def forward(self, x: torch.Tensor, frozen: bool = False) -> torch.Tensor:
-        """`x`: [K, batch, in] -> [K, batch, out]; with `frozen`, the weights take no gradient."""
-        last = len(self.stacked) // 2 - 1
-        for j, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
-            if frozen:
-                weight, bias = weight.detach(), bias.detach()
-            x = torch.baddbmm(bias, x, weight)
-            x = torch.relu(x) if j < last else x
-        return x
-
-    def seed_state(self, k: int, prefix: str) -> dict[str, torch.Tensor]:
-        """Seed k's weights under the names an `nn.Sequential` of linear layers and ReLUs gives them."""
-        return {f"{prefix}{j - j % 2}.{'weight' if j % 2 == 0 else 'bias'}": _unstack(t, k, j)
-                for j, t in enumerate(self.stacked)}
-
-    @torch.no_grad()
-    def load_seed_state(self, k: int, state: dict[str, torch.Tensor], prefix: str) -> None:
-        """Set seed k's weights from what `seed_state` names them."""
-        for j, t in enumerate(self.stacked):
-            t[k] = _restack(state[f"{prefix}{j - j % 2}.{'weight' if j % 2 == 0 else 'bias'}"], j)
-
-
-
-class StackedAdam:
-    """Adam over stacked `[K, ...]` parameters with a step count per seed: a seed left out of an update
-    keeps its parameters, moments and count exactly. torch.optim.Adam's arithmetic, written with
-    tensor masks rather than branches, so that the same operations serve any set of seeds."""
-
-    def __init__(self, params: Sequence[torch.Tensor], lr: float, k: int, template: dict[str, Any]) -> None:
-        """`template`: a single network's Adam `state_dict`, whose `param_groups` a seed's state takes."""
-        self.params = list(params)
-        self.lr = lr
-        self.beta1, self.beta2 = template["param_groups"][0]["betas"]
-        self.eps = template["param_groups"][0]["eps"]
-        self.param_groups = template["param_groups"]
-        self.exp_avg = [torch.zeros_like(p) for p in self.params]
-        self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
-        self.steps = torch.zeros(k, device=self.params[0].device)
-
-    def zero_grad(self) -> None:
-        for p in self.params:
-            p.grad = None
-
-    @torch.no_grad()
-    def step(self, rows: torch.Tensor) -> None:
-        """One Adam step of the seeds in `rows` (a [K] float mask of 0s and 1s) from the parameters' gradients."""
-        self.steps += rows
-        count = self.steps.clamp(min=1)  # (a seed not yet stepped is left out: its correction is never used)
-        step_size = (self.lr / (1 - self.beta1 ** count)).neg_() * rows
-        root = (1 - self.beta2 ** count).sqrt()
-        for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True):
-            shape = (-1,) + (1,) * (p.dim() - 1)
-            mask = rows.view(shape)
-            assert p.grad is not None, "step follows a backward pass through every parameter"
-            grad = torch.where(mask > 0, p.grad, 0.0)  # a left-out seed's gradient may be of garbage rows
-            m.lerp_(grad, (1 - self.beta1) * mask)
-            v.mul_(1 - (1 - self.beta2) * mask).addcmul_(grad, grad, value=1 - self.beta2)
-            p.addcdiv_(m * step_size.view(shape), (v.sqrt() / root.view(shape)).add_(self.eps))
-
-    def state_dict(self) -> dict[str, Any]:
-        """Every seed's moments and step count, for resuming a group."""
-        return {"exp_avg": [m.clone() for m in self.exp_avg], "exp_avg_sq": [v.clone() for v in self.exp_avg_sq],
-                "steps": self.steps.clone()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore what `state_dict` returned (the learning rate stays the configuration's)."""
-        for mine, saved in ((self.exp_avg, state["exp_avg"]), (self.exp_avg_sq, state["exp_avg_sq"])):
-            for t, value in zip(mine, saved, strict=True):
-                t.copy_(value)
-        self.steps.copy_(state["steps"])
-
-    def seed_state(self, k: int) -> dict[str, Any]:
-        """Seed k's part, in the layout of a single network's Adam (weights `[out, in]`, biases `[out]`)."""
-        state = {}
-        if float(self.steps[k]):  # a seed never stepped has no moments, as a new Adam has none
-            step = self.steps[k].detach().cpu()
-            state = {index: {"step": step.clone(), "exp_avg": _unstack(m, k, index),
-                             "exp_avg_sq": _unstack(v, k, index)}
-                     for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True))}
-        return {"state": state, "param_groups": copy.deepcopy(self.param_groups)}
-
-    def load_seed_state(self, k: int, state: dict[str, Any]) -> None:
-        """Set seed k's part from a single network's Adam `state_dict`."""
-        self.steps[k] = 0.0
-        for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True)):
-            moments = state["state"].get(index)
-            m[k], v[k] = (0.0, 0.0) if moments is None else (_restack(moments["exp_avg"], index),
-                                                              _restack(moments["exp_avg_sq"], index))
-            if moments is not None:
-                self.steps[k] = float(moments["step"])
-
-
-def _unstack(t: torch.Tensor, k: int, index: int) -> torch.Tensor:
-    """Seed k's slice of a stacked weight (even index, `[K, in, out]`) or bias (odd, `[K, 1, out]`),
-    as an `nn.Linear` holds it."""
-    t = t.detach()
-    return t[k].T.clone(memory_format=torch.contiguous_format) if index % 2 == 0 else t[k, 0].clone()
-
-
-def _restack(t: torch.Tensor, index: int) -> torch.Tensor:
-    """An `nn.Linear`'s weight or bias in the layout of one seed's slice of the stacked one."""
-    return t.T if index % 2 == 0 else t[None]
+def transition_rows(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
+                    terminated: np.ndarray, discount: np.ndarray) -> np.ndarray:
+    """One transition per seed as replay rows: obs, action, reward, next obs, not done, discount."""
+    return np.concatenate([obs, action, np.asarray(reward)[:, None], next_obs,
+                           1.0 - np.asarray(terminated, np.float32)[:, None], np.asarray(discount)[:, None]],
+                          axis=1, dtype=np.float32)
 
 
 GroupLosses = dict[str, tuple[torch.Tensor, np.ndarray]]
@@ -191,16 +72,13 @@ class TD3Group:
         self._low, self._high = first._low, first._high
         self.obs_dim, self.act_dim = first.obs_space.shape[0], first.action_space.shape[0]
         widths = (self.obs_dim, self.act_dim, 1, self.obs_dim, 1, 1)  # obs, action, reward, next, not done, discount
-        self._cuts = np.cumsum((0, *widths)).tolist()
-        self._rows = torch.empty((self.k, self.config.buffer_size, self._cuts[-1]), device=self.device)
-        self.sizes = torch.zeros(self.k, dtype=torch.long, device=self.device)
-        self._next = torch.zeros(self.k, dtype=torch.long, device=self.device)
-        self._stored = np.zeros(self.k, np.int64)  # transitions stored per seed, known on the host
+        self.replay = StackedReplay(self.k, self.config.buffer_size, widths, self.device)
         self.torch_rng = torch.Generator(self.device).manual_seed(seed)
         self.rng = np.random.default_rng(seed)
         self.updates = np.zeros(self.k, np.int64)  # per seed
 
-    def _actions(self, obs: torch.Tensor, net: StackedMLP) -> torch.Tensor:
+    def actions(self, obs: torch.Tensor, net: StackedMLP) -> torch.Tensor:
+        """`net`'s actions for `obs` ([K, batch, obs]), squashed into the action bounds as the single actor does."""
         return self.centre + self.scale * torch.tanh(net(obs))
 
     @torch.inference_mode()
@@ -208,7 +86,7 @@ class TD3Group:
         """Each seed's action for its observation (`obs`: [K, obs] -> [K, action]); with `explore`,
         Gaussian noise of `exploration_noise` times the half-range, clipped to the bounds."""
         x = torch.as_tensor(np.asarray(obs, np.float32), device=self.device)[:, None]
-        action = self._actions(x, self.actor)[:, 0].cpu().numpy()
+        action = self.actions(x, self.actor)[:, 0].cpu().numpy()
         if explore:
             low, high = self.action_space.low, self.action_space.high
             noise = self.rng.normal(0.0, self.config.exploration_noise, action.shape) * (high - low) / 2
@@ -228,29 +106,17 @@ class TD3Group:
     def observe(self, obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
                 terminated: np.ndarray, discount: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Store one transition per seed ([K, ...] arrays), or only in the seeds of the `rows` mask."""
-        k = np.arange(self.k) if rows is None else np.flatnonzero(rows)
-        data = np.concatenate([obs, action, np.asarray(reward)[:, None], next_obs,
-                               1.0 - np.asarray(terminated, np.float32)[:, None], np.asarray(discount)[:, None]],
-                              axis=1, dtype=np.float32)
-        seeds = torch.as_tensor(k, device=self.device)
-        at = self._next[seeds]
-        self._rows[seeds, at] = torch.as_tensor(data[k], device=self.device)
-        self._next[seeds] = (at + 1) % self.config.buffer_size
-        self.sizes[seeds] = torch.clamp(self.sizes[seeds] + 1, max=self.config.buffer_size)
-        self._stored[k] += 1
+        self.replay.add(transition_rows(obs, action, reward, next_obs, terminated, discount), rows)
 
     def sample(self) -> tuple[torch.Tensor, ...]:
         """A minibatch per seed, drawn uniformly from its own buffer: obs, action, reward, next obs,
         not done, discount, each [K, batch, width] (garbage for a seed with an empty buffer)."""
-        u = torch.rand((self.k, self.config.batch_size), generator=self.torch_rng, device=self.device)
-        idx = (u * self.sizes[:, None]).long()
-        rows = torch.gather(self._rows, 1, idx[:, :, None].expand(-1, -1, self._cuts[-1]))
-        return tuple(rows[:, :, a:b] for a, b in zip(self._cuts, self._cuts[1:], strict=False))
+        return self.replay.sample(self.config.batch_size, self.torch_rng)
 
     def update(self, rows: np.ndarray | None = None) -> GroupLosses | None:
         """One TD3 update of the seeds in the `rows` mask (default all) that have stored a transition;
         the others are left exactly as they were. None when no seed updates."""
-        rows = (self._stored > 0) if rows is None else rows & (self._stored > 0)
+        rows = (self.replay.stored > 0) if rows is None else rows & (self.replay.stored > 0)
         if not rows.any():
             return None
         batch = self.sample()
@@ -260,13 +126,13 @@ class TD3Group:
         delayed = rows & (self.updates % self.config.policy_delay == 0)
         acting = delayed & (self.updates > self.config.critic_warmup)
         if (waiting := delayed & ~acting).any():  # the critic's targets alone: the actor waits
-            _follow(*self._critic_pairs, self._mask(waiting) * self.config.tau)
+            follow(*self._critic_pairs, self._mask(waiting) * self.config.tau)
         if acting.any():
             losses["actor"] = (self.actor_step(batch[0], self._mask(acting)), acting)
         return losses
 
     def _mask(self, rows: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(rows, dtype=torch.float32, device=self.device)
+        return masked(rows, self.device)
 
     def critic_step(self, batch: tuple[torch.Tensor, ...], noise: torch.Tensor, rows: torch.Tensor | None = None
                     ) -> torch.Tensor:
@@ -276,7 +142,7 @@ class TD3Group:
         cfg = self.config
         with torch.no_grad(), self._precision():
             noise = (noise * cfg.policy_noise).clamp(-cfg.noise_clip, cfg.noise_clip)
-            next_action = (self._actions(next_obs, self.actor_target) + noise * self.scale).clamp(self._low, self._high)
+            next_action = (self.actions(next_obs, self.actor_target) + noise * self.scale).clamp(self._low, self._high)
             pair = torch.cat([next_obs, next_action], dim=-1)
             target = reward + not_done * discount * torch.min(self.q1_target(pair), self.q2_target(pair))
         with self._precision():
@@ -293,14 +159,14 @@ class TD3Group:
         their targets; the losses per seed."""
         rows = self._mask(np.ones(self.k, bool)) if rows is None else rows
         with self._precision():
-            q1 = self.q1(torch.cat([obs, self._actions(obs, self.actor)], dim=-1), frozen=True)
+            q1 = self.q1(torch.cat([obs, self.actions(obs, self.actor)], dim=-1), frozen=True)
             losses = -q1.float().mean(dim=(1, 2))
         self.actor_opt.zero_grad()
         losses.sum().backward()
         self.actor_opt.step(rows)
         weight = rows * self.config.tau
-        _follow(*self._actor_pair, weight)
-        _follow(*self._critic_pairs, weight)
+        follow(*self._actor_pair, weight)
+        follow(*self._critic_pairs, weight)
         return losses.detach()
 
     NETS = ("actor", "q1", "q2", "actor_target", "q1_target", "q2_target")
@@ -308,11 +174,9 @@ class TD3Group:
     def resume_state(self) -> dict[str, Any]:
         """Everything the group's later actions and updates depend on: networks, moments, each seed's
         stored transitions and counts, and the generators; `load_resume_state` continues from it exactly."""
-        filled = int(self.sizes.max())
         return {"nets": {name: getattr(self, name).state_dict() for name in self.NETS},
                 "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
-                "replay": self._rows[:, :filled].cpu().clone(), "sizes": self.sizes.cpu().clone(),
-                "next": self._next.cpu().clone(), "stored": torch.from_numpy(self._stored.copy()),
+                "replay": self.replay.state_dict(),
                 "updates": torch.from_numpy(self.updates.copy()), "torch_rng": self.torch_rng.get_state(),
                 "rng": self.rng.bit_generator.state}
 
@@ -322,11 +186,7 @@ class TD3Group:
             getattr(self, name).load_state_dict(state["nets"][name])
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
-        replay = state["replay"]
-        self._rows[:, : replay.shape[1]] = replay.to(self.device)
-        self.sizes.copy_(state["sizes"])
-        self._next.copy_(state["next"])
-        self._stored[:] = state["stored"].numpy()
+        self.replay.load_state_dict(state["replay"])
         self.updates[:] = state["updates"].numpy()
         self.torch_rng.set_state(state["torch_rng"])
         self.rng.bit_generator.state = state["rng"]
@@ -358,10 +218,3 @@ class TD3Group:
         self.actor_opt.load_seed_state(k, state["actor_opt"])
         self.critic_opt.load_seed_state(k, state["critic_opt"])
         self.updates[k] = int(state["updates"])
-
-
-@torch.no_grad()
-def _follow(targets: list[torch.Tensor], sources: list[torch.Tensor], weight: torch.Tensor) -> None:
-    """The soft update of each target towards its source, by `weight` per seed ([K]; 0 leaves a seed's as it is)."""
-    for target, source in zip(targets, sources, strict=True):
-        target.lerp_(source, weight.view((-1,) + (1,) * (target.dim() - 1)))

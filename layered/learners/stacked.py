@@ -1,0 +1,197 @@
+"""The building blocks of learners for K seeds as one computation: networks, Adam and replay buffers,
+each stacked along a leading seed axis so that one operation serves every seed and seeds never mix."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+
+class StackedMLP(nn.Module):
+    """K multilayer perceptrons of the same shape, one per seed, as `[K, in, out]` weights."""
+
+    def __init__(self, mlps: Sequence[nn.Sequential]) -> None:
+        super().__init__()
+        layers = [[m for m in mlp if isinstance(m, nn.Linear)] for mlp in mlps]
+        stacked = []
+        for j in range(len(layers[0])):  # weight, bias, weight, bias ...: the order of an MLP's parameters
+            stacked.append(nn.Parameter(torch.stack([seed[j].weight.detach().T for seed in layers]).contiguous()))
+            stacked.append(nn.Parameter(torch.stack([seed[j].bias.detach()[None] for seed in layers]).contiguous()))
+        self.stacked = nn.ParameterList(stacked)
+
+    @property
+    def weights(self) -> list[torch.Tensor]:
+        """Each layer's weights, [K, in, out]."""
+        return list(self.stacked)[0::2]
+
+    @property
+    def biases(self) -> list[torch.Tensor]:
+        """Each layer's biases, [K, 1, out]."""
+        return list(self.stacked)[1::2]
+
+    def forward(self, x: torch.Tensor, frozen: bool = False) -> torch.Tensor:
+        """`x`: [K, batch, in] -> [K, batch, out]; with `frozen`, the weights take no gradient."""
+        last = len(self.stacked) // 2 - 1
+        for j, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
+            if frozen:
+                weight, bias = weight.detach(), bias.detach()
+            x = torch.baddbmm(bias, x, weight)
+            x = torch.relu(x) if j < last else x
+        return x
+
+    def seed_state(self, k: int, prefix: str) -> dict[str, torch.Tensor]:
+        """Seed k's weights under the names an `nn.Sequential` of linear layers and ReLUs gives them."""
+        return {f"{prefix}{j - j % 2}.{'weight' if j % 2 == 0 else 'bias'}": _unstack(t, k, j)
+                for j, t in enumerate(self.stacked)}
+
+    @torch.no_grad()
+    def load_seed_state(self, k: int, state: dict[str, torch.Tensor], prefix: str) -> None:
+        """Set seed k's weights from what `seed_state` names them."""
+        for j, t in enumerate(self.stacked):
+            t[k] = _restack(state[f"{prefix}{j - j % 2}.{'weight' if j % 2 == 0 else 'bias'}"], j)
+
+
+
+class StackedAdam:
+    """Adam over stacked `[K, ...]` parameters with a step count per seed: a seed left out of an update
+    keeps its parameters, moments and count exactly. torch.optim.Adam's arithmetic, written with
+    tensor masks rather than branches, so that the same operations serve any set of seeds."""
+
+    def __init__(self, params: Sequence[torch.Tensor], lr: float, k: int, template: dict[str, Any]) -> None:
+        """`template`: a single network's Adam `state_dict`, whose `param_groups` a seed's state takes."""
+        self.params = list(params)
+        self.lr = lr
+        self.beta1, self.beta2 = template["param_groups"][0]["betas"]
+        self.eps = template["param_groups"][0]["eps"]
+        self.param_groups = template["param_groups"]
+        self.exp_avg = [torch.zeros_like(p) for p in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
+        self.steps = torch.zeros(k, device=self.params[0].device)
+
+    def zero_grad(self) -> None:
+        for p in self.params:
+            p.grad = None
+
+    @torch.no_grad()
+    def step(self, rows: torch.Tensor) -> None:
+        """One Adam step of the seeds in `rows` (a [K] float mask of 0s and 1s) from the parameters' gradients."""
+        self.steps += rows
+        count = self.steps.clamp(min=1)  # (a seed not yet stepped is left out: its correction is never used)
+        step_size = (self.lr / (1 - self.beta1 ** count)).neg_() * rows
+        root = (1 - self.beta2 ** count).sqrt()
+        for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True):
+            shape = (-1,) + (1,) * (p.dim() - 1)
+            mask = rows.view(shape)
+            assert p.grad is not None, "step follows a backward pass through every parameter"
+            grad = torch.where(mask > 0, p.grad, 0.0)  # a left-out seed's gradient may be of garbage rows
+            m.lerp_(grad, (1 - self.beta1) * mask)
+            v.mul_(1 - (1 - self.beta2) * mask).addcmul_(grad, grad, value=1 - self.beta2)
+            p.addcdiv_(m * step_size.view(shape), (v.sqrt() / root.view(shape)).add_(self.eps))
+
+    def state_dict(self) -> dict[str, Any]:
+        """Every seed's moments and step count, for resuming a group."""
+        return {"exp_avg": [m.clone() for m in self.exp_avg], "exp_avg_sq": [v.clone() for v in self.exp_avg_sq],
+                "steps": self.steps.clone()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what `state_dict` returned (the learning rate stays the configuration's)."""
+        for mine, saved in ((self.exp_avg, state["exp_avg"]), (self.exp_avg_sq, state["exp_avg_sq"])):
+            for t, value in zip(mine, saved, strict=True):
+                t.copy_(value)
+        self.steps.copy_(state["steps"])
+
+    def seed_state(self, k: int) -> dict[str, Any]:
+        """Seed k's part, in the layout of a single network's Adam (weights `[out, in]`, biases `[out]`)."""
+        state = {}
+        if float(self.steps[k]):  # a seed never stepped has no moments, as a new Adam has none
+            step = self.steps[k].detach().cpu()
+            state = {index: {"step": step.clone(), "exp_avg": _unstack(m, k, index),
+                             "exp_avg_sq": _unstack(v, k, index)}
+                     for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True))}
+        return {"state": state, "param_groups": copy.deepcopy(self.param_groups)}
+
+    def load_seed_state(self, k: int, state: dict[str, Any]) -> None:
+        """Set seed k's part from a single network's Adam `state_dict`."""
+        self.steps[k] = 0.0
+        for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True)):
+            moments = state["state"].get(index)
+            m[k], v[k] = (0.0, 0.0) if moments is None else (_restack(moments["exp_avg"], index),
+                                                              _restack(moments["exp_avg_sq"], index))
+            if moments is not None:
+                self.steps[k] = float(moments["step"])
+
+
+def _unstack(t: torch.Tensor, k: int, index: int) -> torch.Tensor:
+    """Seed k's slice of a stacked weight (even index, `[K, in, out]`) or bias (odd, `[K, 1, out]`),
+    as an `nn.Linear` holds it."""
+    t = t.detach()
+    return t[k].T.clone(memory_format=torch.contiguous_format) if index % 2 == 0 else t[k, 0].clone()
+
+
+def _restack(t: torch.Tensor, index: int) -> torch.Tensor:
+    """An `nn.Linear`'s weight or bias in the layout of one seed's slice of the stacked one."""
+    return t.T if index % 2 == 0 else t[None]
+
+
+class StackedReplay:
+    """K seeds' replay buffers as one `[K, capacity, row]` tensor of rows cut into fields of the given
+    widths; each seed samples uniformly from its own stored rows, all in one gather."""
+
+    def __init__(self, k: int, capacity: int, widths: Sequence[int], device: torch.device) -> None:
+        self.k, self.capacity = k, capacity
+        self._cuts = np.cumsum((0, *widths)).tolist()
+        self._rows = torch.empty((k, capacity, self._cuts[-1]), device=device)
+        self.sizes = torch.zeros(k, dtype=torch.long, device=device)
+        self._next = torch.zeros(k, dtype=torch.long, device=device)
+        self.stored = np.zeros(k, np.int64)  # rows added per seed, known on the host
+
+    def add(self, data: np.ndarray, rows: np.ndarray | None = None) -> None:
+        """Store row `data[k]` ([K, row]) for every seed, or only for the seeds of the `rows` mask."""
+        k = np.arange(self.k) if rows is None else np.flatnonzero(rows)
+        seeds = torch.as_tensor(k, device=self._rows.device)
+        at = self._next[seeds]
+        self._rows[seeds, at] = torch.as_tensor(data[k], device=self._rows.device)
+        self._next[seeds] = (at + 1) % self.capacity
+        self.sizes[seeds] = torch.clamp(self.sizes[seeds] + 1, max=self.capacity)
+        self.stored[k] += 1
+
+    def sample(self, batch: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
+        """A minibatch per seed, each field `[K, batch, width]` (garbage for a seed with nothing stored)."""
+        u = torch.rand((self.k, batch), generator=generator, device=self._rows.device)
+        idx = (u * self.sizes[:, None]).long()
+        rows = torch.gather(self._rows, 1, idx[:, :, None].expand(-1, -1, self._cuts[-1]))
+        return tuple(rows[:, :, a:b] for a, b in zip(self._cuts, self._cuts[1:], strict=False))
+
+    def seed_rows(self, k: int) -> list[np.ndarray]:
+        """Seed k's stored rows in the order stored (until the buffer wraps), cut into fields."""
+        rows = self._rows[k, : int(self.sizes[k])].cpu().numpy()
+        return [rows[:, a:b] for a, b in zip(self._cuts, self._cuts[1:], strict=False)]
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """The filled part of every seed's buffer and its counts, for resuming a group."""
+        return {"rows": self._rows[:, : int(self.sizes.max())].cpu().clone(), "sizes": self.sizes.cpu().clone(),
+                "next": self._next.cpu().clone(), "stored": torch.from_numpy(self.stored.copy())}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore what `state_dict` returned."""
+        self._rows[:, : state["rows"].shape[1]] = state["rows"].to(self._rows.device)
+        self.sizes.copy_(state["sizes"])
+        self._next.copy_(state["next"])
+        self.stored[:] = state["stored"].numpy()
+
+
+def masked(rows: np.ndarray, device: torch.device) -> torch.Tensor:
+    """A [K] boolean mask as the float mask of 0s and 1s that the stacked steps take."""
+    return torch.as_tensor(rows, dtype=torch.float32, device=device)
+
+
+@torch.no_grad()
+def follow(targets: list[torch.Tensor], sources: list[torch.Tensor], weight: torch.Tensor) -> None:
+    """The soft update of each target towards its source, by `weight` per seed ([K]; 0 leaves a seed's as it is)."""
+    for target, source in zip(targets, sources, strict=True):
+        target.lerp_(source, weight.view((-1,) + (1,) * (target.dim() - 1)))

@@ -1,0 +1,77 @@
+"""The jointly trained gate's learner for K seeds as one computation: each seed acts, learns its gate and
+checkpoints as its own `GateTD3` learner."""
+
+import numpy as np
+import pytest
+import torch
+from gymnasium.spaces import Box
+
+from layered.buffer import Transition
+from layered.learners.choice_group import GateTD3Group
+from layered.learners.gate_td3 import GateTD3, GateTD3Config
+from layered.outputs import GateEncoding, OutputLayout
+
+OBS = Box(-1.0, 1.0, (3,), np.float32)
+OUT = Box(np.array([-2.0, -1.0], np.float32), np.array([2.0, 1.0], np.float32))  # an action, then the gate
+LAYOUT = OutputLayout(1, gate_dims=1, gate=GateEncoding())
+CONFIG = GateTD3Config(hidden=(32, 16), batch_size=8, buffer_size=100)
+
+
+def learners(seeds, config=CONFIG):
+    return [GateTD3(OBS, OUT, LAYOUT, config, seed) for seed in seeds]
+
+
+def transitions(seeds, gate):
+    """One made-up transition per seed (seed k's offset by k), its gate output `gate[k]`."""
+    obs = np.arange(3, dtype=np.float32)[None] * 0.1 + np.arange(len(seeds), dtype=np.float32)[:, None] * 0.2
+    output = np.stack([np.full(len(seeds), 0.5, np.float32), np.asarray(gate, np.float32)], axis=1)
+    return obs, output, np.array([1.0, -0.5, 0.25][: len(seeds)]), obs * 0.5, np.zeros(len(seeds), bool), \
+        np.full(len(seeds), 0.99)
+
+
+def test_a_group_acts_as_its_seeds_gate_learners():
+    singles = learners([0, 1, 2])
+    group = GateTD3Group(singles)
+    obs = np.random.default_rng(1).uniform(-1, 1, (3, 3)).astype(np.float32)
+    acted = group.act(obs, explore=False)
+    for k, single in enumerate(singles):
+        assert acted[k] == pytest.approx(single.act(obs[k], explore=False), abs=1e-6)
+    assert set(group.random_action()[:, 1]) <= {-1.0, 1.0}
+    explored = np.concatenate([group.act(obs, explore=True) for _ in range(50)])
+    assert set(explored[:, 1]) == {-1.0, 1.0}  # epsilon-greedy: both choices come up
+
+
+def test_one_gate_update_of_the_group_is_each_seeds_own():
+    """With one stored transition per seed, every minibatch is that transition: the group's gate regression
+    then gives each seed the weights its own `ChoiceQ.update` gives (before any target moves)."""
+    singles, seeds, gate = learners([0, 1]), [0, 1], [1.0, -1.0]
+    group = GateTD3Group(singles)
+    obs, output, reward, next_obs, terminated, discount = transitions(seeds, gate)
+    group.observe(obs, output, reward, next_obs, terminated, discount)
+    group.choice.update(np.ones(2, bool))
+    for k, single in enumerate(singles):
+        initial = {key: value.clone() for key, value in single.choice.net.state_dict().items()}
+        single.observe(Transition(obs[k], output[k], float(reward[k]), next_obs[k], False, float(discount[k])))
+        single.choice.update(8, np.random.default_rng(0))
+        mine = group.seed_state_dict(k)["choice"]["net"]
+        for key, value in single.choice.net.state_dict().items():
+            assert torch.allclose(mine[key], value, atol=1e-6), (k, key)
+        assert not torch.equal(initial["4.weight"], mine["4.weight"])  # the update did move the gate
+        stored = group.choice.replay.seed_rows(k)
+        assert stored[2][0, 0] == (1.0 if gate[k] > 0 else 0.0)  # the choice: commit 1, defer 0
+
+
+def test_a_seeds_state_is_an_ordinary_gate_checkpoint_and_a_left_out_seed_keeps_its_gate():
+    group = GateTD3Group(learners([4, 5]))
+    for step in range(6):
+        group.observe(*transitions([4, 5], [1.0, -1.0] if step % 2 else [-1.0, 1.0]))
+    before = group.choice.seed_state_dict(1)["net"]
+    for _ in range(4):
+        assert group.update(np.array([True, False])) is not None
+    after = group.choice.seed_state_dict(1)["net"]
+    assert all(torch.equal(before[key], after[key]) for key in before)
+    obs = np.full((2, 3), 0.3, np.float32)
+    for k, seed in enumerate([4, 5]):
+        single = learners([seed])[0]
+        single.load_state_dict(group.seed_state_dict(k))  # strict: every key and shape of a GateTD3 state
+        assert single.act(obs[k], explore=False) == pytest.approx(group.act(obs, explore=False)[k], abs=1e-6)
