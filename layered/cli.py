@@ -159,7 +159,8 @@ def _parser() -> argparse.ArgumentParser:
     sw = sub.add_parser(
         "sweep", help="train every recipe with several seeds, in parallel processes",
         usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--out DIR] [--steps N] "
-        "[--vectorize] [--device {cpu,cuda,auto}] [--backend {local,ray}] [--address ADDR] [--plugin FILE.py|MODULE]",
+        "[--vectorize] [--device {cpu,cuda,auto}] [--no-mps] [--backend {local,ray}] [--address ADDR] "
+        "[--plugin FILE.py|MODULE]",
         epilog="key=a,b,c trains a setup per value (several such keys: every combination), each in its own "
         "directory; finished runs are skipped and stopped ones resume; then: layered report DIR",
     )
@@ -171,7 +172,9 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--vectorize", action="store_true",
                     help="train the seeds of each setup as one group, in one process (as train --seeds)")
     sw.add_argument("--device", choices=["cpu", "cuda", "auto"],
-                    help="where the learners run (learner.device); with cuda, the --jobs processes share the GPU")
+                    help="where the learners run (learner.device); with cuda, the --jobs processes share the GPU, "
+                    "under CUDA MPS (started for the sweep where it is installed and not running)")
+    sw.add_argument("--no-mps", action="store_true", help="on CUDA, do not start MPS: the workers take turns")
     sw.add_argument("--backend", choices=["local", "ray"], default="local",
                     help="local processes (default) or Ray tasks (needs the extra layered-control[ray])")
     sw.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
@@ -491,7 +494,8 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from layered.sweep import plan, run_local, run_ray
+    from layered.cuda_mps import shared_gpu
+    from layered.sweep import on_gpu, plan, run_local, run_ray
 
     overrides = [a for a in args.recipes if "=" in a] + args.overrides
     overrides += [f"learner.device={args.device}"] if args.device else []
@@ -511,7 +515,11 @@ def _sweep(args: argparse.Namespace) -> int:
         except RuntimeError as e:
             return _fail(str(e))
     else:
-        outcomes, stop = run_local(jobs, args.jobs, args.vectorize)
+        processes = min(args.jobs, len({job.label for job in jobs}) if args.vectorize else len(jobs))
+        with shared_gpu(processes if on_gpu(jobs) and not args.no_mps else 1) as line:
+            if line is not None:
+                print(f"layered: note: {line}", file=sys.stderr)
+            outcomes, stop = run_local(jobs, args.jobs, args.vectorize)
         if stop.received:
             print(f"layered: {stop.summary()}", file=sys.stderr)
             return EXIT_SIGNAL[stop.received[0]]

@@ -220,6 +220,17 @@ class SweepStop:
         return f"sweep stopped by {self.received[0]}: its running runs stopped {how}; the same command resumes them"
 
 
+def on_gpu(jobs: Sequence[Job]) -> bool:
+    """Whether any of the jobs' learners run on a CUDA GPU of this machine."""
+    import torch
+
+    if not torch.cuda.is_available():
+        return False
+    recipes = {job.label: job.recipe for job in jobs}.values()
+    return any(getattr(load_recipe(recipe).learner_config(i), "device", "cpu") in ("cuda", "auto")  # (a learner
+               for recipe in recipes for i in range(len(recipe["layers"])))  # without a device setting runs on CPU)
+
+
 def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tuple[list[Outcome], SweepStop]:
     """Run the jobs in `workers` processes, showing progress over jobs; the outcomes, and the signals
     that stopped the sweep (if any). With `vectorize`, the seeds of each setup train as one group
