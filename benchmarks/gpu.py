@@ -6,9 +6,10 @@ Two parts, each printing a markdown table:
   off (eager), `inductor` and `cudagraphs`, each its own process. Steps/s are counted over the
   updates after the first `--settle` (compilation and CUDA-graph recording happen there; their
   time is reported apart).
-* **sweep**: `layered sweep --jobs N --device cuda` with N seeds at once, for each N of `--jobs`;
-  per-seed steps/s are read from each run's train.log (the rate between evaluations, the first
-  interval left out), and their sum is the aggregate.
+* **sweep**: `layered sweep --jobs N --device cuda` with N seeds at once, for each N of `--jobs`,
+  with `--no-mps` (the processes take turns on the GPU) and under CUDA MPS (which the sweep starts
+  where it can); per-seed steps/s are read from each run's train.log (the rate between
+  evaluations, the first interval left out), and their sum is the aggregate.
 * **group**: `layered train --seeds K --device cuda`, K seeds as one computation in one process, for
   each K of `--groups`, on `--env` (Pendulum-v1, or e.g. Hopper-v5); the rate of its progress lines
   times K is the aggregate.
@@ -75,16 +76,17 @@ def one_seed(device: str, mode: str, steps: int, warmup: int, settle: int) -> di
             "wall_seconds": time.perf_counter() - start}
 
 
-def sweep(device: str, jobs: int, steps: int, warmup: int) -> dict[str, Any]:
-    """`layered sweep` with `jobs` seeds at once; per-seed steps/s from each run's train.log."""
+def sweep(device: str, jobs: int, steps: int, warmup: int, mps: bool) -> dict[str, Any]:
+    """`layered sweep` with `jobs` seeds at once, under CUDA MPS (which the sweep starts where it can) or
+    with `--no-mps`; per-seed steps/s from each run's train.log."""
     with tempfile.TemporaryDirectory() as tmp:
         recipe = Path(tmp) / "td3.toml"
         recipe.write_text(tomli_w.dumps({**RECIPE, "train": {"steps_per_phase": steps, "warmup": warmup},
                                  "eval": {**RECIPE["eval"], "every": max(steps // 6, 1)}}))
         start = time.perf_counter()
         subprocess.run([sys.executable, "-m", "layered.cli", "sweep", str(recipe), "--seeds", str(jobs), "--jobs",
-                        str(jobs), "--device", device, "--out", str(Path(tmp) / "runs")], check=True,
-                       capture_output=True)
+                        str(jobs), "--device", device, "--out", str(Path(tmp) / "runs"),
+                        *([] if mps else ["--no-mps"])], check=True, capture_output=True)
         wall = time.perf_counter() - start
         rates = []
         for log in sorted(Path(tmp, "runs").rglob("train.log")):
@@ -145,11 +147,13 @@ def main() -> None:
             print(f"| {mode} | {row['steps_per_second']:.1f} | {row['settle_seconds']:.1f} "
                   f"| {row['wall_seconds']:.1f} |", flush=True)
     if "sweep" in args.parts:
-        print("\n| seeds at once | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|")
+        print("\n| seeds at once | CUDA MPS | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|---|")
         for jobs in map(int, args.jobs.split(",")):
-            row = sweep(args.device, jobs, args.steps, args.warmup)
-            seeds = ", ".join(f"{r:.0f}" for r in row["per_seed"])
-            print(f"| {jobs} | {row['aggregate']:.0f} | {seeds} | {row['wall_seconds']:.1f} |", flush=True)
+            for mps in (False, True) if jobs > 1 else (False,):
+                row = sweep(args.device, jobs, args.steps, args.warmup, mps)
+                seeds = ", ".join(f"{r:.0f}" for r in row["per_seed"])
+                print(f"| {jobs} | {'yes' if mps else 'no'} | {row['aggregate']:.0f} | {seeds} | "
+                      f"{row['wall_seconds']:.1f} |", flush=True)
     if "group" in args.parts:
         print(f"\n{args.env}, seeds as one group (layered train --seeds K)\n\n"
               "| K | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|")
