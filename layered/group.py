@@ -17,6 +17,7 @@ import sys
 from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +43,7 @@ from layered.group_state import (
 )
 from layered.interrupt import StopRequest, Stopped
 from layered.learner_set import build_learners, keep_start_weights, start_from_weights
-from layered.learners.choice_group import GateTD3Group
+from layered.learners.choice_group import ChoiceLearnerGroup, GateTD3Group, TempoRLGroup
 from layered.learners.td3_group import GroupLosses, TD3Group
 from layered.logs import CsvLog
 from layered.orders import Phase
@@ -66,8 +67,9 @@ from layered.trainer import (
 )
 
 
-GroupLearner = TD3Group | GateTD3Group
-STACKED: dict[str, type[TD3Group] | type[GateTD3Group]] = {"td3": TD3Group, "td3-gate": GateTD3Group}
+GroupLearner = TD3Group | ChoiceLearnerGroup
+STACKED: dict[str, type[TD3Group] | type[ChoiceLearnerGroup]] = {"td3": TD3Group, "td3-gate": GateTD3Group,
+                                                                 "temporl": TempoRLGroup}
 """The learners a group stacks over its seeds, by kind (each takes the seeds' single learners of that kind)."""
 
 
@@ -243,7 +245,8 @@ class Group:
         learn = [self.names.index(name) for name in phase.learn]
         warmups = {i: self.recipe.warmup(self.names[i]) for i in learn}
         loop = PhaseLoop(0, {i: Pending.empty(self.rows, stack.observation_spaces[i].shape[0],
-                                              stack.layers[i].rules.size) for i in learn},
+                                              stack.layers[i].rules.size, stack.layers[i].layout.repeats)
+                             for i in learn},
                          np.zeros(self.rows), np.zeros(self.rows, np.int64))
         decisions = {i: np.zeros(self.rows, np.int64) for i in learn}
         if saved is not None:
@@ -264,8 +267,7 @@ class Group:
             self._store(i, mine, deciding & mine.open, full, np.zeros(self.rows, bool), stack)
             explored = group.act(full, explore=True)
             outputs = np.where((decisions[i] < warmups[i])[:, None], group.random_action(), explored)
-            mine.seen[deciding], mine.open[deciding] = seen, True
-            mine.reward[deciding], mine.elapsed[deciding] = 0.0, 0
+            mine.decide(deciding, seen)
             decisions[i] += deciding
             return outputs[deciding]
 
@@ -282,14 +284,14 @@ class Group:
                 _check_finite(envs.obs, "observation", "the environment", p, loop.step)
                 shares = rules.layer_rewards(reward, composition)
                 rules.tick()
+                ended = terminated | truncated
                 for i, mine in pending.items():
-                    mine.reward += np.where(mine.open, shares[i], 0.0)
-                    mine.elapsed += mine.open
+                    mine.accrue(shares[i], (rules.t % stack.layers[i].period == 0) | ended,
+                                partial(rules.observation, i, envs.obs), stack.layers[i].discount_units)
                 loop.returns += reward
                 loop.lengths += 1
                 loop.step += 1
                 bar.advance(1)
-                ended = terminated | truncated
                 if ended.any():
                     for i, mine in pending.items():
                         self._store(i, mine, ended & mine.open, rules.observation(i, envs.obs), terminated, stack)
@@ -379,7 +381,7 @@ class Group:
         layer = stack.layers[i]
         discount = layer.gamma ** np.where(layer.discount_per_step, mine.elapsed, 1)
         self.learners[self.names[i]].observe(mine.seen, mine.output, mine.reward, next_seen, terminated, discount,
-                                             rows)
+                                             rows, mine.path)
 
     def _evaluate(self, phase: Phase, evaluator: tuple[Stack, Rules, EnvGroup], losses: dict[str, list[GroupLosses]],
                   step: int, bar: Progress) -> None:

@@ -9,7 +9,7 @@ run directories are its `seed<k>` folders), written atomically beside its previo
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -33,11 +33,44 @@ class Pending:
     reward: np.ndarray
     elapsed: np.ndarray
     open: np.ndarray  # whether the row has decided this episode
+    repeats: bool  # whether the layer may repeat its decisions, which then keep their path
+    period_reward: np.ndarray  # a repeating layer's: the reward of the period under way
+    period_steps: np.ndarray
+    path: list[list[tuple[np.ndarray, float, int]]]  # a repeating layer's, per row: per period of its repeat
 
     @classmethod
-    def empty(cls, rows: int, obs: int, size: int) -> Pending:
+    def empty(cls, rows: int, obs: int, size: int, repeats: bool) -> Pending:
         return cls(np.zeros((rows, obs), np.float32), np.zeros((rows, size), np.float32), np.zeros(rows),
-                   np.zeros(rows, np.int64), np.zeros(rows, bool))
+                   np.zeros(rows, np.int64), np.zeros(rows, bool), repeats, np.zeros(rows), np.zeros(rows, np.int64),
+                   [[] for _ in range(rows)])
+
+    def decide(self, rows: np.ndarray, seen: np.ndarray) -> None:
+        """New decisions in the `rows` (a mask), which saw `seen`: nothing has followed them yet."""
+        self.seen[rows], self.open[rows] = seen, True
+        self.reward[rows], self.elapsed[rows] = 0.0, 0
+        if self.repeats:
+            self.period_reward[rows], self.period_steps[rows] = 0.0, 0
+            for k in np.flatnonzero(rows).tolist():
+                self.path[k] = []
+
+    def accrue(self, share: np.ndarray, period_ends: np.ndarray, seen: Callable[[], np.ndarray],
+               units: Callable[[int], int]) -> None:
+        """Book one base step into the open decisions: its `share` of the reward, one step elapsed and, for a
+        repeating layer, at the end of one of its periods (the `period_ends` rows), (what it sees, the
+        period's reward, its discount `units` for the period's steps) on the row's path."""
+        self.reward += np.where(self.open, share, 0.0)
+        self.elapsed += self.open
+        if not self.repeats:
+            return
+        self.period_reward += np.where(self.open, share, 0.0)
+        self.period_steps += self.open
+        ends = self.open & period_ends
+        if not ends.any():
+            return
+        observed = seen()
+        for k in np.flatnonzero(ends).tolist():
+            self.path[k].append((observed[k].copy(), float(self.period_reward[k]), units(int(self.period_steps[k]))))
+        self.period_reward[ends], self.period_steps[ends] = 0.0, 0
 
 
 @dataclass
@@ -134,8 +167,8 @@ def _tensors(tree: Any) -> Any:
         return torch.from_numpy(np.ascontiguousarray(tree).copy())
     if isinstance(tree, dict):
         return {key: _tensors(value) for key, value in tree.items()}
-    if isinstance(tree, list):
-        return [_tensors(value) for value in tree]
+    if isinstance(tree, list | tuple):
+        return type(tree)(_tensors(value) for value in tree)
     return tree
 
 
@@ -145,8 +178,8 @@ def _arrays(tree: Any) -> Any:
         return tree.numpy()
     if isinstance(tree, dict):
         return {key: _arrays(value) for key, value in tree.items()}
-    if isinstance(tree, list):
-        return [_arrays(value) for value in tree]
+    if isinstance(tree, list | tuple):
+        return type(tree)(_arrays(value) for value in tree)
     return tree
 
 

@@ -7,8 +7,9 @@ import torch
 from gymnasium.spaces import Box
 
 from layered.buffer import Transition
-from layered.learners.choice_group import GateTD3Group
+from layered.learners.choice_group import GateTD3Group, TempoRLGroup
 from layered.learners.gate_td3 import GateTD3, GateTD3Config
+from layered.learners.temporl import TempoRL, TempoRLConfig
 from layered.outputs import GateEncoding, OutputLayout
 
 OBS = Box(-1.0, 1.0, (3,), np.float32)
@@ -75,3 +76,35 @@ def test_a_seeds_state_is_an_ordinary_gate_checkpoint_and_a_left_out_seed_keeps_
         single = learners([seed])[0]
         single.load_state_dict(group.seed_state_dict(k))  # strict: every key and shape of a GateTD3 state
         assert single.act(obs[k], explore=False) == pytest.approx(group.act(obs, explore=False)[k], abs=1e-6)
+
+
+def test_tempo_rl_in_a_group_stores_each_seeds_periods_and_partial_repetitions_as_its_own_learner():
+    """Two seeds' decisions, one repeated over three periods (a path) and one of a single period: each
+    seed's TD3 and skip replay rows are those its own `TempoRL.observe` stores, in the same order."""
+    config = TempoRLConfig(hidden=(32, 16), batch_size=8, buffer_size=100, gamma=0.9)
+    layout = OutputLayout(1, max_repeat=3)
+    space = Box(np.array([-2.0, 1.0], np.float32), np.array([2.0, 3.0], np.float32))  # an action, then the count
+    singles = [TempoRL(OBS, space, layout, config, seed) for seed in (0, 1)]
+    group = TempoRLGroup(singles)
+    rng = np.random.default_rng(2)
+    obs, next_obs = rng.uniform(-1, 1, (2, 3)).astype(np.float32), rng.uniform(-1, 1, (2, 3)).astype(np.float32)
+    output = np.array([[0.5, 3.0], [-1.0, 1.0]], np.float32)
+    paths = [[(rng.uniform(-1, 1, 3).astype(np.float32), float(r), 1) for r in (1.0, -2.0)] + [(next_obs[0], 0.5, 1)],
+             []]
+    reward, terminated, discount = np.array([-0.5, 2.0]), np.array([True, False]), np.array([0.729, 0.9])
+    group.observe(obs, output, reward, next_obs, terminated, discount, np.ones(2, bool), paths)
+    for k, single in enumerate(singles):
+        single.observe(Transition(obs[k], output[k], float(reward[k]), next_obs[k], bool(terminated[k]),
+                                  float(discount[k]), tuple(paths[k])))
+        for replay, buffer in ((group.td3.replay, single.td3.buffer), (group.choice.replay, single.choice.buffer)):
+            mine = np.concatenate(replay.seed_rows(k), axis=1)
+            theirs = single_rows(buffer)
+            assert mine.shape == theirs.shape and np.allclose(mine, theirs), (k, mine.shape, theirs.shape)
+    assert len(group.choice.replay.seed_rows(0)[0]) == 6 and len(group.td3.replay.seed_rows(1)[0]) == 1
+
+
+def single_rows(buffer):
+    """A single replay buffer's stored rows as the group lays them out: obs, action, reward, next, not done,
+    discount (a skip's action holds its choice last, which the group keeps between action and reward)."""
+    state = buffer.state_dict()
+    return np.concatenate([state[key].numpy().reshape(state["size"], -1) for key in buffer.FIELDS], axis=1)

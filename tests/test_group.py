@@ -123,12 +123,65 @@ def test_a_group_writes_each_seed_an_ordinary_run_directory_and_writes_it_again_
 
 def test_what_a_group_cannot_train_is_refused_before_anything_is_written(tmp_path, capsys):
     out = tmp_path / "g"
-    assert main(["train", str(ROOT / "recipes/pendulum/temporl.toml"), "--seeds", "2", "--out", str(out)]) == 2
+    assert main(["train", str(ROOT / "docs/examples/pendulum-centre.toml"), "--plugin",
+                 str(ROOT / "docs/examples/centre.py"), "--seeds", "2", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "'temporl' learner" in err[0] and "layered sweep" in err[0]
+    assert len(err) == 1 and "'centre' learner" in err[0] and "layered sweep" in err[0]
     assert not out.exists()
     for bad in ("3-1", "1,1", "x"):
         with pytest.raises(SystemExit) as stop:
             main(["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", bad, "--out", str(out)])
         assert stop.value.code == 2 and f"got {bad!r}" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_repeating_layers_decisions_carry_the_path_its_own_stack_gives(tmp_path):
+    """TempoRL's decisions as the group hands them to its learner (each with its path: per period of the
+    repeat, what the layer saw, the period's reward and its discount units), replayed decision by decision
+    through each seed's own agent view: the same transitions, paths included."""
+    group, recipes, _ = tiny_group("pendulum/temporl.toml", [0, 3], tmp_path,
+                                   ["train.warmup=100000", "layers.fast.period=3", "train.discount=step"])
+    phase = phases_of(recipes[0])[0]
+    name = phase.learn[0]
+    decisions: list[list] = [[], []]
+    learner = group.learners[name]
+    observe = learner.observe
+
+    def record(obs, output, reward, next_obs, terminated, discount, rows=None, paths=None):
+        for k in np.flatnonzero(rows):
+            decisions[k].append((obs[k].copy(), output[k].copy(), float(reward[k]), next_obs[k].copy(),
+                                 bool(terminated[k]), float(discount[k]), [tuple(p) for p in paths[k]]))
+        observe(obs, output, reward, next_obs, terminated, discount, rows, paths)
+
+    learner.observe = record
+    for seed in group.seeds:
+        seed.state.start_phase(0, phase.learn, 10**9, 10**9)
+    group.run_phase(phase, 230)
+    for k, recipe_k in enumerate(recipes):
+        env = make_aec_env(recipe_k, active=list(phase.active))
+        env.reset(seed=recipe_k.train.seed)
+        outputs, mine, finished = iter([d[1] for d in decisions[k]]), [], False
+        while not finished:
+            for _ in env.agent_iter():
+                _, _, terminated, truncated, info = env.last()
+                if "transition" in info:
+                    mine.append(info["transition"])
+                if terminated or truncated:
+                    env.step(None)
+                    continue
+                if (output := next(outputs, None)) is None:
+                    finished = True
+                    break
+                env.step(output)
+            if not finished:
+                env.reset()
+        assert len(mine) == len(decisions[k]) > 20 and any(len(d[6]) > 1 for d in decisions[k])
+        for t, (theirs, alone) in enumerate(zip(decisions[k], mine, strict=True)):
+            obs, output, reward, next_obs, terminated, discount, path = theirs
+            assert np.allclose(alone.obs, obs, atol=1e-6) and np.array_equal(alone.action, output), t
+            assert alone.reward == pytest.approx(reward, abs=1e-5) and alone.terminated == terminated, t
+            assert np.allclose(alone.next_obs, next_obs, atol=1e-6) and alone.discount == pytest.approx(discount), t
+            assert len(alone.path) == len(path), t
+            for (o1, r1, u1), (o2, r2, u2) in zip(alone.path, path, strict=True):
+                assert np.allclose(o1, o2, atol=1e-6) and r1 == pytest.approx(r2, abs=1e-5) and u1 == u2, t
+        env.close()

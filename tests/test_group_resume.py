@@ -48,6 +48,7 @@ def assert_same_group(a: Path, b: Path, seeds) -> None:
     ("pendulum/tla-o.toml", ["train.order=joint", "train.warmup=100"], 300, [(0, 177)]),  # a gate committing
     ("dmc-cartpole-balance/td3.toml", [], 200, [(0, 123)]),  # a dm_control task
     ("pendulum/tla-joint.toml", ["layers.slow.warmup=20"], 400, [(0, 157)]),  # the learned gate (td3-gate)
+    ("pendulum/temporl.toml", ["layers.fast.period=2"], 400, [(0, 155)]),  # a repeat under way (temporl)
 ])
 def test_a_group_stopped_mid_episode_resumes_to_the_same_files(recipe, overrides, steps, moments, tmp_path,
                                                                monkeypatch):

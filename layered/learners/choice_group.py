@@ -1,25 +1,29 @@
-"""The jointly trained gate's learner (`td3-gate`) for K seeds as one computation.
+"""The learners that make a discrete choice on top of a TD3 action, for K seeds as one computation: the
+jointly trained gate (`td3-gate`) and TempoRL (`temporl`).
 
-Each seed's TD3 part is stacked as `TD3Group` stacks TD3, and its gate Q-network (`ChoiceQ`: values of
-defer and commit for an observation and the action TD3 proposed there) is stacked beside it, with a
-replay tensor of its own and targets from the TD3 group's target critic. As with `TD3Group`, a seed's
-numbers do not depend on the other seeds', and `seed_state_dict(k)` is seed k's state as a single
-`GateTD3` learner's `state_dict`.
+Each seed's TD3 part is stacked as `TD3Group` stacks TD3, and its choice Q-network (`ChoiceQ`: the
+gate's defer and commit, or TempoRL's repeat counts, valued for an observation and the action TD3
+proposed there) is stacked beside it, with a replay tensor of its own and targets from the TD3
+group's target critic. As with `TD3Group`, a seed's numbers do not depend on the other seeds', and
+`seed_state_dict(k)` is seed k's state as a single learner's `state_dict`.
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
-from layered.learners.choice import ChoiceQ
+from layered.buffer import Transition
+from layered.learners.choice import ChoiceQ, TD3WithChoice
 from layered.learners.gate_td3 import GateTD3
 from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, masked
 from layered.learners.td3 import TD3
-from layered.learners.td3_group import GroupLosses, TD3Group, transition_rows
+from layered.learners.td3_group import DecisionPath, GroupLosses, TD3Group, transition_rows
+from layered.learners.temporl import TempoRL, skip_transitions
 
 
 class ChoiceGroup:
@@ -87,53 +91,49 @@ class ChoiceGroup:
         self.replay.load_state_dict(state["replay"])
 
 
-class GateTD3Group:
-    """K `GateTD3` learners of one configuration, one per seed, acting and updating together."""
+class ChoiceLearnerGroup(ABC):
+    """K learners of a `TD3WithChoice` kind, one per seed: TD3's action followed by the choice's output."""
 
     loss_names = TD3.loss_names
 
-    def __init__(self, learners: Sequence[GateTD3], seed: int = 0) -> None:
+    def __init__(self, learners: Sequence[TD3WithChoice], seed: int = 0) -> None:
         first = learners[0]
-        assert first.layout.gate is not None, "GateTD3.unfit refuses a layer without a gate"
-        self.gate = first.layout.gate
         self.td3 = TD3Group([learner.td3 for learner in learners], seed)
         self.choice = ChoiceGroup([learner.choice for learner in learners], self.td3)
         self.epsilon = first.epsilon()
-        self.values = np.array([self.gate.value(commit=False), self.gate.value(commit=True)], np.float32)
+        self.values = np.array([first.encode(index) for index in range(self.choice.n)], np.float32)
         self.rng = np.random.default_rng([seed, 1])
         self.k = self.td3.k
 
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
-        """[K, action + 1]: each seed's TD3 action and its gate's choice (epsilon-greedy with `explore`)."""
+        """[K, action + 1]: each seed's TD3 action and its choice (epsilon-greedy with `explore`)."""
         action = self.td3.act(obs, explore)
         choice = self.choice.choose(obs, action, self.epsilon if explore else 0.0, self.rng)
         return np.concatenate([action, self.values[choice][:, None]], axis=1)
 
     def random_action(self) -> np.ndarray:
-        """[K, action + 1] warm-up outputs: TD3's warm-up actions and uniformly random gate choices."""
-        choice = self.rng.integers(2, size=self.k)
+        """[K, action + 1] warm-up outputs: TD3's warm-up actions and uniformly random choices."""
+        choice = self.rng.integers(self.choice.n, size=self.k)
         return np.concatenate([self.td3.random_action(), self.values[choice][:, None]], axis=1)
 
     def act_macs(self) -> int:
         return self.td3.act_macs() + sum(w.shape[1] * w.shape[2] for w in self.choice.net.weights)
 
+    @abstractmethod
     def observe(self, obs: np.ndarray, output: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
-                terminated: np.ndarray, discount: np.ndarray, rows: np.ndarray | None = None) -> None:
-        """Store each seed's transition for TD3 (the proposed action) and for the gate (its choice), as
-        `GateTD3.observe` does for one."""
-        action, commits = output[:, :-1], self.gate.commits(output[:, -1])
-        self.td3.observe(obs, action, reward, next_obs, terminated, discount, rows)
-        self.choice.add(obs, action, commits.astype(np.float32), reward, next_obs, terminated, discount, rows)
+                terminated: np.ndarray, discount: np.ndarray, rows: np.ndarray | None = None,
+                paths: Sequence[DecisionPath] | None = None) -> None:
+        """Store each seed's completed decision (in the seeds of the `rows` mask), as the single learner does."""
 
     def update(self, rows: np.ndarray | None = None) -> GroupLosses | None:
-        """TD3's update of the seeds in `rows`, then their gates' (the gate learns when TD3 does)."""
+        """TD3's update of the seeds in `rows`, then their choices' (a choice learns when TD3 does)."""
         losses = self.td3.update(rows)
         if losses is not None:
             self.choice.update(losses["critic"][1])
         return losses
 
     def seed_state_dict(self, k: int) -> dict[str, Any]:
-        """Seed k's state as a single `GateTD3` learner's `state_dict`."""
+        """Seed k's state as a single learner's `state_dict`."""
         return {"td3": self.td3.seed_state_dict(k), "choice": self.choice.seed_state_dict(k)}
 
     def load_seed_state_dict(self, k: int, state: dict[str, Any]) -> None:
@@ -148,3 +148,61 @@ class GateTD3Group:
         self.td3.load_resume_state(state["td3"])
         self.choice.load_resume_state(state["choice"])
         self.rng.bit_generator.state = state["rng"]
+
+
+class GateTD3Group(ChoiceLearnerGroup):
+    """K `GateTD3` learners: the choice is the gate's, 0 defers and 1 commits."""
+
+    def __init__(self, learners: Sequence[GateTD3], seed: int = 0) -> None:
+        super().__init__(learners, seed)
+        assert learners[0].layout.gate is not None, "GateTD3.unfit refuses a layer without a gate"
+        self.gate = learners[0].layout.gate
+
+    def observe(self, obs: np.ndarray, output: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
+                terminated: np.ndarray, discount: np.ndarray, rows: np.ndarray | None = None,
+                paths: Sequence[DecisionPath] | None = None) -> None:
+        """Store each seed's transition for TD3 (the proposed action) and for the gate (its choice), as
+        `GateTD3.observe` does for one."""
+        action, commits = output[:, :-1], self.gate.commits(output[:, -1])
+        self.td3.observe(obs, action, reward, next_obs, terminated, discount, rows)
+        self.choice.add(obs, action, commits.astype(np.float32), reward, next_obs, terminated, discount, rows)
+
+
+class TempoRLGroup(ChoiceLearnerGroup):
+    """K `TempoRL` learners: the choice is the repeat count (k: k + 1 periods)."""
+
+    def __init__(self, learners: Sequence[TempoRL], seed: int = 0) -> None:
+        super().__init__(learners, seed)
+        self.gamma = learners[0].config.gamma
+
+    def observe(self, obs: np.ndarray, output: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
+                terminated: np.ndarray, discount: np.ndarray, rows: np.ndarray | None = None,
+                paths: Sequence[DecisionPath] | None = None) -> None:
+        """Store, per seed, each period of its repeat for TD3 and every partial repetition for the skip Q, as
+        `TempoRL.observe` does for one (`skip_transitions`), the seeds' j-th transitions added together."""
+        periods: list[list[Transition]] = [[] for _ in range(self.k)]
+        skips: list[list[tuple[Transition, int]]] = [[] for _ in range(self.k)]
+        for k in np.flatnonzero(np.ones(self.k, bool) if rows is None else rows).tolist():
+            decision = Transition(obs[k], output[k], float(reward[k]), next_obs[k], bool(terminated[k]),
+                                  float(discount[k]), tuple(paths[k]) if paths is not None else ())
+            periods[k], skips[k] = skip_transitions(decision, self.gamma)
+        for j in range(max(map(len, periods))):
+            obs_j, action_j, reward_j, next_j, done_j, discount_j, present = _columns(
+                [p[j] if j < len(p) else None for p in periods])
+            self.td3.observe(obs_j, action_j, reward_j, next_j, done_j, discount_j, present)
+        for j in range(max(map(len, skips))):
+            chosen = [s[j] if j < len(s) else None for s in skips]
+            obs_j, action_j, reward_j, next_j, done_j, discount_j, present = _columns([c and c[0] for c in chosen])
+            choice = np.array([c[1] if c else 0 for c in chosen], np.float32)
+            self.choice.add(obs_j, action_j, choice, reward_j, next_j, done_j, discount_j, present)
+
+
+def _columns(transitions: Sequence[Transition | None]) -> tuple[np.ndarray, ...]:
+    """One transition per seed (None: none for that seed) as the [K, ...] arrays a group stores, and the
+    mask of the seeds that have one."""
+    present = np.array([t is not None for t in transitions])
+    first = next(t for t in transitions if t is not None)
+    filled = [t if t is not None else first for t in transitions]  # (rows outside the mask are not stored)
+    return (np.stack([t.obs for t in filled]), np.stack([t.action for t in filled]),
+            np.array([t.reward for t in filled]), np.stack([t.next_obs for t in filled]),
+            np.array([t.terminated for t in filled]), np.array([t.discount for t in filled]), present)

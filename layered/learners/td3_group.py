@@ -32,6 +32,9 @@ def transition_rows(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, nex
                           axis=1, dtype=np.float32)
 
 
+DecisionPath = Sequence[tuple[np.ndarray, float, int]]
+"""A repeating layer's decision, per period of its repeat: (its observation, its reward, discount units)."""
+
 GroupLosses = dict[str, tuple[torch.Tensor, np.ndarray]]
 """What one update of a group returns: per loss name, its value for every seed ([K], on the device) and the
 mask of the seeds whose update computed it (the others' values are meaningless)."""
@@ -104,8 +107,10 @@ class TD3Group:
         return self.rng.uniform(centre - half, centre + half, (self.k, len(low))).astype(np.float32)
 
     def observe(self, obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
-                terminated: np.ndarray, discount: np.ndarray, rows: np.ndarray | None = None) -> None:
-        """Store one transition per seed ([K, ...] arrays), or only in the seeds of the `rows` mask."""
+                terminated: np.ndarray, discount: np.ndarray, rows: np.ndarray | None = None,
+                paths: Sequence[DecisionPath] | None = None) -> None:
+        """Store one transition per seed ([K, ...] arrays), or only in the seeds of the `rows` mask (a
+        repeating layer's decision as a whole, its `paths` unused, as a single TD3 learner stores it)."""
         self.replay.add(transition_rows(obs, action, reward, next_obs, terminated, discount), rows)
 
     def sample(self) -> tuple[torch.Tensor, ...]:

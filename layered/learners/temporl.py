@@ -52,30 +52,43 @@ class TempoRL(TD3WithChoice):
         return self.config.skip_epsilon
 
     def observe(self, transition: Transition) -> None:
-        """Store each period of the repeat for TD3 and every partial repetition for the skip Q. A span
-        of periods is discounted by gamma to the power of the discount units the stack gave them (one
-        per period, or one per base step with train.discount = "step"); a decision without a path
-        spans one period, with the transition's own discount."""
-        action, gamma = transition.action[:-1], self.config.gamma
-        if transition.path:
-            states = [transition.obs, *(o for o, _, _ in transition.path)]
-            rewards = [r for _, r, _ in transition.path]
-            units = [u for _, _, u in transition.path]
-        else:
-            states, rewards, units = [transition.obs, transition.next_obs], [transition.reward], []
-        n = len(rewards)
+        """Store each period of the repeat for TD3 and every partial repetition for the skip Q (see
+        `skip_transitions`)."""
+        periods, skips = skip_transitions(transition, self.config.gamma)
+        for period in periods:
+            self.td3.observe(period)
+        for skip, choice in skips:
+            self.choice.add(skip, choice)
 
-        def discount(start: int, end: int) -> float:
-            return gamma ** sum(units[start:end]) if units else transition.discount
 
-        for k in range(n):
-            done = transition.terminated and k == n - 1
-            self.td3.observe(Transition(states[k], action, rewards[k], states[k + 1], done, discount(k, k + 1)))
-        for start in range(n):
-            total, weight = 0.0, 1.0
-            for length in range(1, n - start + 1):
-                total += weight * rewards[start + length - 1]
-                end = start + length
-                weight = discount(start, end)
-                done = transition.terminated and end == n
-                self.choice.add(Transition(states[start], action, total, states[end], done, weight), length - 1)
+def skip_transitions(transition: Transition, gamma: float) -> tuple[list[Transition], list[tuple[Transition, int]]]:
+    """A TempoRL decision's transitions: one per period of the repeat, for TD3 (the action without its
+    repeat count), and one per partial repetition, for the skip Q, with its choice (k: k + 1 periods).
+
+    A span of periods is discounted by gamma to the power of the discount units the stack gave them
+    (one per period, or one per base step with train.discount = "step"); a decision without a path
+    spans one period, with the transition's own discount."""
+    action = transition.action[:-1]
+    if transition.path:
+        states = [transition.obs, *(o for o, _, _ in transition.path)]
+        rewards = [r for _, r, _ in transition.path]
+        units = [u for _, _, u in transition.path]
+    else:
+        states, rewards, units = [transition.obs, transition.next_obs], [transition.reward], []
+    n = len(rewards)
+
+    def discount(start: int, end: int) -> float:
+        return gamma ** sum(units[start:end]) if units else transition.discount
+
+    periods = [Transition(states[k], action, rewards[k], states[k + 1], transition.terminated and k == n - 1,
+                          discount(k, k + 1)) for k in range(n)]
+    skips = []
+    for start in range(n):
+        total, weight = 0.0, 1.0
+        for length in range(1, n - start + 1):
+            total += weight * rewards[start + length - 1]
+            end = start + length
+            weight = discount(start, end)
+            done = transition.terminated and end == n
+            skips.append((Transition(states[start], action, total, states[end], done, weight), length - 1))
+    return periods, skips
