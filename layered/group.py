@@ -2,13 +2,14 @@
 
 Every base step, the K stacks step together: one `Rules` over K rows decides for every seed at once
 (layers due at different steps after a reset, a gate committing in some seeds: masks over the rows),
-each layer's TD3 learners of the K seeds act as one stacked network (`TD3Group`), the K environments
-step, and each learning layer updates the seeds it decided in with one masked, batched update. What
-the single loop (`layered.trainer`) does per episode end, evaluation and phase end is done per seed,
-and each seed writes its own run directory in the single run's format, so `eval`, `report` and
-`export` take any one seed. The numbers are a seed's own but not bit-identical to its single run (the
-group draws its noise and minibatches from generators of its own, and batched products sum in
-another order); the same group run twice writes the same files.
+each layer's learners of the K seeds act as one stacked network (`TD3Group`, or a `ChoiceLearnerGroup`
+for the gate's and TempoRL's), the K environments step, and each learning layer updates the seeds it
+decided in with one masked, batched update. What the single loop (`layered.trainer`) does per episode
+end, evaluation and phase end is done per seed, and each seed writes its own run directory in the
+single run's format, so `eval`, `report` and `export` take any one seed. The numbers are a seed's own
+but not bit-identical to its single run (the group draws its noise and minibatches from generators of
+its own, and batched products sum in another order); the same group run twice writes the same files,
+and a group checkpointed at any step and resumed (`layered.group_state`) writes them too.
 """
 
 from __future__ import annotations
