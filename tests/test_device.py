@@ -55,8 +55,10 @@ def test_cuda_learners_keep_networks_and_buffers_on_the_gpu(recipe, tiny, tmp_pa
 @CUDA
 def test_cuda_run_resumes_to_the_same_files(tiny, tmp_path, monkeypatch):
     recipe = load_recipe("pendulum/tla-c.toml", [*tiny, "learner.device=cuda"])
-    train(recipe, tmp_path / "whole", max_steps=400, progress=False)
-    train_until_stopped(monkeypatch, recipe, tmp_path / "stopped", episodes=2, max_steps=400, progress=False)
+    # one label for both: it defaults to the run directory's name, which results.json records
+    train(recipe, tmp_path / "whole", max_steps=400, progress=False, label="x")
+    train_until_stopped(monkeypatch, recipe, tmp_path / "stopped", episodes=2, max_steps=400, progress=False,
+                        label="x")
     resume(tmp_path / "stopped", max_steps=400, progress=False)
     assert_same_run(tmp_path / "whole", tmp_path / "stopped")
 

@@ -103,9 +103,19 @@ def compiled(step: Callable[..., torch.Tensor], mode: str, device: torch.device)
     """`step` as TD3Config.compile asks: eager, inductor, or inductor with CUDA graphs."""
     if mode == "off":
         return step
-    if mode == "cudagraphs" and device.type != "cuda":
+    if mode == "inductor":
+        return torch.compile(step)
+    if device.type != "cuda":
         raise ValueError(f"compile = 'cudagraphs' needs the learner on a GPU (device is {device.type!r})")
-    return torch.compile(step, mode="reduce-overhead" if mode == "cudagraphs" else None)
+    graph = torch.compile(step, mode="reduce-overhead")
+
+    def replayed(*args: Any) -> torch.Tensor:
+        # a graph's output lives in its static memory, which the next replay overwrites; the loop keeps each
+        # update's loss until it reads the losses back, so each replay starts a new step and its loss is copied
+        torch.compiler.cudagraph_mark_step_begin()
+        return graph(*args).clone()
+
+    return replayed
 
 
 def mlp(sizes: tuple[int, ...]) -> nn.Sequential:
