@@ -191,5 +191,7 @@ def test_a_vectorised_sweep_trains_each_setups_seeds_as_one_group(tmp_path):
     assert runs == [f"pendulum/td3/layers.fast.action_penalty={v}/seed{k}" for v in (0, 1) for k in (0, 1)]
     assert '"group": [\n    0,\n    1\n  ]' in (out / runs[0] / "run.json").read_text()
     assert sweep(*args).stdout.count("skipped") == 4
-    refused = sweep(PENDULUM / "temporl.toml", "--vectorize", "--out", tmp_path / "t")
-    assert refused.returncode == 2 and "'temporl' learner" in refused.stderr and not (tmp_path / "t").exists()
+    examples = PENDULUM.parent.parent / "docs" / "examples"  # a plugin's learner, which no group stacks
+    refused = sweep(examples / "pendulum-centre.toml", "--plugin", examples / "centre.py", "--vectorize", "--out",
+                    tmp_path / "t")
+    assert refused.returncode == 2 and "'centre' learner" in refused.stderr and not (tmp_path / "t").exists()
