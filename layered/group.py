@@ -18,7 +18,7 @@ import sys
 from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
-from functools import partial
+import functools
 from pathlib import Path
 from typing import Any
 
@@ -102,6 +102,7 @@ def check_group(recipe: Recipe) -> None:
         raise RecipeError("recipe", out)
 
 
+@functools.cache  # asked by the command line and again by train_group
 def _checkpoint_problem(env_id: str) -> str | None:
     """Why an environment of `env_id`, once reset, cannot be snapshotted (None if it can)."""
     env = make_env(env_id)
@@ -287,8 +288,8 @@ class Group:
                 rules.tick()
                 ended = terminated | truncated
                 for i, mine in pending.items():
-                    mine.accrue(shares[i], (rules.t % stack.layers[i].period == 0) | ended,
-                                partial(rules.observation, i, envs.obs), stack.layers[i].discount_units)
+                    mine.accrue(shares[i])
+                _end_periods(pending, ended, rules, envs.obs, stack)
                 loop.returns += reward
                 loop.lengths += 1
                 loop.step += 1
@@ -446,6 +447,17 @@ class Group:
             evaluator[2].close()
         for row, result in zip(rows, results, strict=True):
             row |= {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
+
+
+def _end_periods(pending: dict[int, Pending], ended: np.ndarray, rules: Rules, obs: np.ndarray, stack: Stack) -> None:
+    """Where a repeating learning layer's period ends at this step (or the episode does), its open decisions'
+    paths grow, as `Stack.accrue` books them for one stack."""
+    for i, mine in pending.items():
+        if not mine.repeats:
+            continue
+        ends = mine.open & ((rules.t % stack.layers[i].period == 0) | ended)
+        if ends.any():
+            mine.end_periods(ends, rules.observation(i, obs), stack.layers[i].discount_units)
 
 
 def _read_back(losses: dict[str, list[GroupLosses]], seeds: Sequence[Seed], step: int) -> None:

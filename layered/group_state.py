@@ -53,23 +53,20 @@ class Pending:
             for k in np.flatnonzero(rows).tolist():
                 self.path[k] = []
 
-    def accrue(self, share: np.ndarray, period_ends: np.ndarray, seen: Callable[[], np.ndarray],
-               units: Callable[[int], int]) -> None:
-        """Book one base step into the open decisions: its `share` of the reward, one step elapsed and, for a
-        repeating layer, at the end of one of its periods (the `period_ends` rows), (what it sees, the
-        period's reward, its discount `units` for the period's steps) on the row's path."""
+    def accrue(self, share: np.ndarray) -> None:
+        """Book one base step into the open decisions: its `share` of the reward and one step elapsed (for a
+        repeating layer, into the period under way too)."""
         self.reward += np.where(self.open, share, 0.0)
         self.elapsed += self.open
-        if not self.repeats:
-            return
-        self.period_reward += np.where(self.open, share, 0.0)
-        self.period_steps += self.open
-        ends = self.open & period_ends
-        if not ends.any():
-            return
-        observed = seen()
+        if self.repeats:
+            self.period_reward += np.where(self.open, share, 0.0)
+            self.period_steps += self.open
+
+    def end_periods(self, ends: np.ndarray, seen: np.ndarray, units: Callable[[int], int]) -> None:
+        """A repeating layer's periods ended in the `ends` rows (open ones): (what it sees, the period's
+        reward, its discount `units` for the period's steps) joins each row's path."""
         for k in np.flatnonzero(ends).tolist():
-            self.path[k].append((observed[k].copy(), float(self.period_reward[k]), units(int(self.period_steps[k]))))
+            self.path[k].append((seen[k].copy(), float(self.period_reward[k]), units(int(self.period_steps[k]))))
         self.period_reward[ends], self.period_steps[ends] = 0.0, 0
 
 

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from collections import deque
+import subprocess
+import time
+from collections import defaultdict, deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +72,41 @@ def train_until_stopped(monkeypatch, recipe, out: Path, episodes: int, **kwargs)
     with pytest.raises(Stopped):
         runs.train(recipe, out, **kwargs)
     monkeypatch.undo()
+
+
+def kill_when(proc: subprocess.Popen, ready: Callable[[], bool], timeout: float = 30.0) -> bool:
+    """SIGKILL `proc` as soon as `ready()` holds (or at `timeout`); False if it finished first."""
+    deadline = time.monotonic() + timeout
+    while proc.poll() is None:
+        if ready() or time.monotonic() > deadline:
+            proc.kill()
+            proc.wait()
+            return True
+        time.sleep(0.0005)
+    return False
+
+
+def passed(moment: float) -> bool:
+    """Whether the monotonic clock has passed `moment`."""
+    return time.monotonic() >= moment
+
+
+def play_through_agent_view(env, next_output: Callable[[str], Any]) -> dict[str, list]:
+    """Step an agent view (reset) episode after episode, each due layer given `next_output(name)`, until that is
+    None; the transitions each layer was handed, in order."""
+    handed: dict[str, list] = defaultdict(list)
+    while True:
+        for name in env.agent_iter():
+            _, _, terminated, truncated, info = env.last()
+            if "transition" in info:
+                handed[name].append(info["transition"])
+            if terminated or truncated:
+                env.step(None)
+                continue
+            if (output := next_output(name)) is None:
+                return handed
+            env.step(output)
+        env.reset()
 
 
 def stop_at_episode_end(monkeypatch, k: int) -> None:

@@ -6,6 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import play_through_agent_view
+
 from layered.agents import make_aec_env
 from layered.cli import main
 from layered.evaluate import evaluate
@@ -59,23 +61,7 @@ def test_each_seeds_transitions_are_those_its_own_stack_gives(recipe, overrides,
         env.reset(seed=recipe_k.train.seed)
         theirs = {name: stored(group, name, k) for name in phase.learn}
         actions = {name: iter(theirs[name][1]) for name in phase.learn}
-        mine: dict[str, list] = {name: [] for name in phase.learn}
-        finished = False
-        while not finished:
-            for name in env.agent_iter():
-                obs, _, terminated, truncated, info = env.last()
-                if "transition" in info:
-                    mine[name].append(info["transition"])
-                if terminated or truncated:
-                    env.step(None)
-                    continue
-                action = next(actions[name], None)
-                if action is None:
-                    finished = True
-                    break
-                env.step(action)
-            if not finished:
-                env.reset()
+        mine = play_through_agent_view(env, lambda name, actions=actions: next(actions[name], None))
         for name in phase.learn:
             obs, action, reward, next_obs, not_done, discount = theirs[name]
             # the replay ends where the first layer runs out of actions: at most a slow period short
@@ -160,21 +146,8 @@ def test_a_repeating_layers_decisions_carry_the_path_its_own_stack_gives(tmp_pat
     for k, recipe_k in enumerate(recipes):
         env = make_aec_env(recipe_k, active=list(phase.active))
         env.reset(seed=recipe_k.train.seed)
-        outputs, mine, finished = iter([d[1] for d in decisions[k]]), [], False
-        while not finished:
-            for _ in env.agent_iter():
-                _, _, terminated, truncated, info = env.last()
-                if "transition" in info:
-                    mine.append(info["transition"])
-                if terminated or truncated:
-                    env.step(None)
-                    continue
-                if (output := next(outputs, None)) is None:
-                    finished = True
-                    break
-                env.step(output)
-            if not finished:
-                env.reset()
+        outputs = iter([d[1] for d in decisions[k]])
+        mine = play_through_agent_view(env, lambda _, outputs=outputs: next(outputs, None))[name]
         assert len(mine) == len(decisions[k]) > 20 and any(len(d[6]) > 1 for d in decisions[k])
         for t, (theirs, alone) in enumerate(zip(decisions[k], mine, strict=True)):
             obs, output, reward, next_obs, terminated, discount, path = theirs

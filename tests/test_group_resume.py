@@ -11,7 +11,7 @@ from functools import partial
 from pathlib import Path
 
 import pytest
-from conftest import assert_same_run
+from conftest import assert_same_run, kill_when, passed
 
 from layered.rundir import RunDirError
 from layered.cli import main
@@ -105,25 +105,9 @@ def layered(*args):
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
-def kill_when(proc: subprocess.Popen, ready, timeout: float) -> bool:
-    """SIGKILL `proc` as soon as `ready()` holds (or at `timeout`); False if it finished first."""
-    deadline = time.monotonic() + timeout
-    while proc.poll() is None:
-        if ready() or time.monotonic() > deadline:
-            proc.kill()
-            proc.wait()
-            return True
-        time.sleep(0.0005)
-    return False
-
-
 def writing(directory: Path) -> bool:
     """Whether a checkpoint of the group is being written (its temporary file exists)."""
     return bool(list(directory.glob(f".{GROUP_CHECKPOINT}.*")))
-
-
-def passed(moment: float) -> bool:
-    return time.monotonic() >= moment
 
 
 def test_a_group_killed_at_random_moments_and_mid_checkpoint_resumes_byte_identical(tmp_path):

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_same_run, stop_at_episode_end, train_until_stopped
+from conftest import assert_same_run, kill_when, passed, stop_at_episode_end, train_until_stopped
 
 from layered import load_recipe
 from layered.checkpoint import CheckpointError, load_checkpoint, previous
@@ -142,25 +142,9 @@ def layered(*args, **kwargs):
 CLI_RUN = [PENDULUM / "tla-c.toml", *TINY, "--steps", 1500, "--threads", 1]
 
 
-def kill_when(proc: subprocess.Popen, ready, timeout: float = 30.0) -> bool:
-    """SIGKILL `proc` as soon as `ready()` holds (or at `timeout`); False if it finished first."""
-    deadline = time.monotonic() + timeout
-    while proc.poll() is None:
-        if ready() or time.monotonic() > deadline:
-            proc.kill()
-            proc.wait()
-            return True
-        time.sleep(0.0005)
-    return False
-
-
 def writing(run_dir: Path) -> bool:
     """Whether a checkpoint write is under way (its temporary file exists)."""
     return bool(list((run_dir / "checkpoints").glob(".run.pt.*")))
-
-
-def passed(moment: float) -> bool:
-    return time.monotonic() >= moment
 
 
 def test_killed_with_sigkill_at_random_moments_and_resumed_ends_byte_identical(tmp_path):
