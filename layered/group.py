@@ -164,7 +164,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
                 seed.metrics.truncate(seed.state.log_sizes["metrics"])
                 seed.episodes.truncate(seed.state.log_sizes["episodes"])
             seeds.append(seed)
-        stop = StopRequest()
+        stop = StopRequest(until="this step")
         group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop)
         del singles
         try:

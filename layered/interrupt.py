@@ -26,16 +26,18 @@ class Stopped(Exception):
 
 
 class StopRequest:
-    """Set by SIGINT or SIGTERM while installed; the loop reads `requested` at episode ends."""
+    """Set by SIGINT or SIGTERM while installed; the loop reads `requested` where it can checkpoint
+    (`until`: a single run's episode end, a group's every step)."""
 
-    def __init__(self) -> None:
+    def __init__(self, until: str = "this episode") -> None:
         self.requested: str | None = None
+        self.until = until
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         if self.requested is not None:
             raise KeyboardInterrupt
         self.requested = SIGNAL_NAMES.get(signal.Signals(signum), str(signum))
-        print(f"\nlayered: {self.requested}: finishing this episode to save a checkpoint "
+        print(f"\nlayered: {self.requested}: finishing {self.until} to save a checkpoint "
               "(signal again to stop at once)", file=sys.stderr)
 
     @contextmanager

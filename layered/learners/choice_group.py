@@ -20,7 +20,7 @@ import torch
 from layered.buffer import Transition
 from layered.learners.choice import ChoiceQ, TD3WithChoice
 from layered.learners.gate_td3 import GateTD3
-from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, masked
+from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay
 from layered.learners.td3 import TD3
 from layered.learners.td3_group import DecisionPath, GroupLosses, TD3Group, transition_rows
 from layered.learners.temporl import TempoRL, skip_transitions
@@ -72,7 +72,7 @@ class ChoiceGroup:
         losses = (chosen - target).square().mean(dim=(1, 2))
         self.opt.zero_grad()
         losses.sum().backward()
-        self.opt.step(masked(rows, self.td3.device))
+        self.opt.step(rows)
 
     def seed_state_dict(self, k: int) -> dict[str, Any]:
         """Seed k's network and optimiser as a single `ChoiceQ`'s `state_dict` holds them."""

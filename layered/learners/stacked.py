@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+from torch.optim.adam import adam as adam_update
 
 
 class StackedMLP(nn.Module):
@@ -59,8 +60,9 @@ class StackedMLP(nn.Module):
 
 class StackedAdam:
     """Adam over stacked `[K, ...]` parameters with a step count per seed: a seed left out of an update
-    keeps its parameters, moments and count exactly. torch.optim.Adam's arithmetic, written with
-    tensor masks rather than branches, so that the same operations serve any set of seeds."""
+    keeps its parameters, moments and count exactly. Each seed's slice of each parameter is handed to
+    torch's fused Adam as a tensor of its own, with its own count, so that one call steps the chosen
+    seeds with the arithmetic of a single network's (fused) Adam."""
 
     def __init__(self, params: Sequence[torch.Tensor], lr: float, k: int, template: dict[str, Any]) -> None:
         """`template`: a single network's Adam `state_dict`, whose `param_groups` a seed's state takes."""
@@ -71,27 +73,33 @@ class StackedAdam:
         self.param_groups = template["param_groups"]
         self.exp_avg = [torch.zeros_like(p) for p in self.params]
         self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
-        self.steps = torch.zeros(k, device=self.params[0].device)
+        # one count per parameter and seed, as torch's Adam keeps one per parameter (fused Adam adds 1 to each)
+        self._counts = torch.zeros((len(self.params), k), device=self.params[0].device)
+
+    @property
+    def steps(self) -> torch.Tensor:
+        """Each seed's step count, [K]."""
+        return self._counts[0]
 
     def zero_grad(self) -> None:
         for p in self.params:
             p.grad = None
 
     @torch.no_grad()
-    def step(self, rows: torch.Tensor) -> None:
-        """One Adam step of the seeds in `rows` (a [K] float mask of 0s and 1s) from the parameters' gradients."""
-        self.steps += rows
-        count = self.steps.clamp(min=1)  # (a seed not yet stepped is left out: its correction is never used)
-        step_size = (self.lr / (1 - self.beta1 ** count)).neg_() * rows
-        root = (1 - self.beta2 ** count).sqrt()
-        for p, m, v in zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True):
-            shape = (-1,) + (1,) * (p.dim() - 1)
-            mask = rows.view(shape)
+    def step(self, rows: np.ndarray) -> None:
+        """One Adam step of the seeds in the `rows` mask ([K] booleans) from the parameters' gradients."""
+        seeds = np.flatnonzero(rows).tolist()
+        if not seeds:
+            return
+        slices: list[list[torch.Tensor]] = [[], [], [], [], []]  # params, grads, moments, squared moments, counts
+        for j, (p, m, v) in enumerate(zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True)):
             assert p.grad is not None, "step follows a backward pass through every parameter"
-            grad = torch.where(mask > 0, p.grad, 0.0)  # a left-out seed's gradient may be of garbage rows
-            m.lerp_(grad, (1 - self.beta1) * mask)
-            v.mul_(1 - (1 - self.beta2) * mask).addcmul_(grad, grad, value=1 - self.beta2)
-            p.addcdiv_(m * step_size.view(shape), (v.sqrt() / root.view(shape)).add_(self.eps))
+            for k in seeds:
+                for out, t in zip(slices, (p, p.grad, m, v, self._counts[j]), strict=True):
+                    out.append(t[k])
+        params, grads, exp_avg, exp_avg_sq, counts = slices
+        adam_update(params, grads, exp_avg, exp_avg_sq, [], counts, fused=True, amsgrad=False, beta1=self.beta1,
+                    beta2=self.beta2, lr=self.lr, weight_decay=0.0, eps=self.eps, maximize=False)
 
     def state_dict(self) -> dict[str, Any]:
         """Every seed's moments and step count, for resuming a group."""
@@ -103,7 +111,7 @@ class StackedAdam:
         for mine, saved in ((self.exp_avg, state["exp_avg"]), (self.exp_avg_sq, state["exp_avg_sq"])):
             for t, value in zip(mine, saved, strict=True):
                 t.copy_(value)
-        self.steps.copy_(state["steps"])
+        self._counts[:] = state["steps"].to(self._counts.device)
 
     def seed_state(self, k: int) -> dict[str, Any]:
         """Seed k's part, in the layout of a single network's Adam (weights `[out, in]`, biases `[out]`)."""
@@ -117,13 +125,13 @@ class StackedAdam:
 
     def load_seed_state(self, k: int, state: dict[str, Any]) -> None:
         """Set seed k's part from a single network's Adam `state_dict`."""
-        self.steps[k] = 0.0
+        self._counts[:, k] = 0.0
         for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True)):
             moments = state["state"].get(index)
             m[k], v[k] = (0.0, 0.0) if moments is None else (_restack(moments["exp_avg"], index),
                                                               _restack(moments["exp_avg_sq"], index))
             if moments is not None:
-                self.steps[k] = float(moments["step"])
+                self._counts[index, k] = float(moments["step"])
 
 
 def _unstack(t: torch.Tensor, k: int, index: int) -> torch.Tensor:
@@ -186,7 +194,7 @@ class StackedReplay:
 
 
 def masked(rows: np.ndarray, device: torch.device) -> torch.Tensor:
-    """A [K] boolean mask as the float mask of 0s and 1s that the stacked steps take."""
+    """A [K] boolean mask as a float mask of 0s and 1s (the weights of a masked soft update)."""
     return torch.as_tensor(rows, dtype=torch.float32, device=device)
 
 

@@ -126,22 +126,22 @@ class TD3Group:
             return None
         batch = self.sample()
         noise = torch.randn(batch[1].shape, generator=self.torch_rng, device=self.device)
-        losses = {"critic": (self.critic_step(batch, noise, self._mask(rows)), rows)}
+        losses = {"critic": (self.critic_step(batch, noise, rows), rows)}
         self.updates[rows] += 1
         delayed = rows & (self.updates % self.config.policy_delay == 0)
         acting = delayed & (self.updates > self.config.critic_warmup)
         if (waiting := delayed & ~acting).any():  # the critic's targets alone: the actor waits
             follow(*self._critic_pairs, self._mask(waiting) * self.config.tau)
         if acting.any():
-            losses["actor"] = (self.actor_step(batch[0], self._mask(acting)), acting)
+            losses["actor"] = (self.actor_step(batch[0], acting), acting)
         return losses
 
     def _mask(self, rows: np.ndarray) -> torch.Tensor:
         return masked(rows, self.device)
 
-    def critic_step(self, batch: tuple[torch.Tensor, ...], noise: torch.Tensor, rows: torch.Tensor | None = None
+    def critic_step(self, batch: tuple[torch.Tensor, ...], noise: torch.Tensor, rows: np.ndarray | None = None
                     ) -> torch.Tensor:
-        """One critic step of the seeds in `rows` (a [K] float mask; default all) on their minibatches,
+        """One critic step of the seeds in the `rows` mask (default all) on their minibatches,
         with standard-normal smoothing `noise`; the losses per seed."""
         obs, action, reward, next_obs, not_done, discount = batch
         cfg = self.config
@@ -156,20 +156,20 @@ class TD3Group:
                       + (self.q2(pair) - target).float().square().mean(dim=(1, 2)))
         self.critic_opt.zero_grad()
         losses.sum().backward()
-        self.critic_opt.step(self._mask(np.ones(self.k, bool)) if rows is None else rows)
+        self.critic_opt.step(np.ones(self.k, bool) if rows is None else rows)
         return losses.detach()
 
-    def actor_step(self, obs: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """One actor step of the seeds in `rows` (default all) through their Q1, then the soft update of
-        their targets; the losses per seed."""
-        rows = self._mask(np.ones(self.k, bool)) if rows is None else rows
+    def actor_step(self, obs: torch.Tensor, rows: np.ndarray | None = None) -> torch.Tensor:
+        """One actor step of the seeds in the `rows` mask (default all) through their Q1, then the soft update
+        of their targets; the losses per seed."""
+        rows = np.ones(self.k, bool) if rows is None else rows
         with self._precision():
             q1 = self.q1(torch.cat([obs, self.actions(obs, self.actor)], dim=-1), frozen=True)
             losses = -q1.float().mean(dim=(1, 2))
         self.actor_opt.zero_grad()
         losses.sum().backward()
         self.actor_opt.step(rows)
-        weight = rows * self.config.tau
+        weight = self._mask(rows) * self.config.tau
         follow(*self._actor_pair, weight)
         follow(*self._critic_pairs, weight)
         return losses.detach()
