@@ -11,11 +11,11 @@ Two parts, each printing a markdown table:
   where it can); per-seed steps/s are read from each run's train.log (the rate between
   evaluations, the first interval left out), and their sum is the aggregate.
 * **group**: `layered train --seeds K --device cuda`, K seeds as one computation in one process, for
-  each K of `--groups`, on `--env` (Pendulum-v1, or e.g. Hopper-v5); the rate of its progress lines
-  times K is the aggregate.
+  each K of `--groups`, on `--env` (Pendulum-v1, or e.g. Hopper-v5), its update eager and captured
+  as CUDA graphs (`--group-modes`); the rate of its progress lines times K is the aggregate.
 
     python benchmarks/gpu.py                                  # both parts, on the GPU
-    python benchmarks/gpu.py --device cpu --modes off,inductor --jobs 1,2 --groups 1,2 --steps 1500   # a dry run
+    python benchmarks/gpu.py --device cpu --modes off,inductor --jobs 1,2 --groups 1,2 --group-modes off --steps 1500
 
 Runs on CPU with `--device cpu` (without `cudagraphs`) to check the script itself.
 """
@@ -95,12 +95,14 @@ def sweep(device: str, jobs: int, steps: int, warmup: int, mps: bool) -> dict[st
     return {"jobs": jobs, "per_seed": rates, "aggregate": sum(rates), "wall_seconds": wall}
 
 
-def group(device: str, seeds: int, steps: int, warmup: int, env: str) -> dict[str, Any]:
-    """`layered train --seeds` with `seeds` seeds as one group; its steps/s (per seed, every seed stepping
-    at once) from the progress lines, the first interval left out, times the seeds."""
+def group(device: str, seeds: int, steps: int, warmup: int, env: str, mode: str) -> dict[str, Any]:
+    """`layered train --seeds` with `seeds` seeds as one group, its update as `mode` (learner.compile); its
+    steps/s (per seed, every seed stepping at once) from the progress lines, the first interval left out,
+    times the seeds."""
     with tempfile.TemporaryDirectory() as tmp:
         recipe = Path(tmp) / "td3.toml"
-        recipe.write_text(tomli_w.dumps({**RECIPE, "env": {"id": env},
+        learner = {**RECIPE["learner"], "compile": mode}
+        recipe.write_text(tomli_w.dumps({**RECIPE, "env": {"id": env}, "learner": learner,
                                          "train": {"steps_per_phase": steps, "warmup": warmup},
                                          "eval": {**RECIPE["eval"], "every": max(steps // 6, 1)}}))
         start = time.perf_counter()
@@ -124,6 +126,8 @@ def main() -> None:
     parser.add_argument("--settle", type=int, default=200, help="updates left out of the rate (default 200)")
     parser.add_argument("--groups", default="1,4,16,64", help="seeds trained as one group, comma-separated")
     parser.add_argument("--env", default="Pendulum-v1", help="the environment of the group part (e.g. Hopper-v5)")
+    parser.add_argument("--group-modes", default="off,cudagraphs",
+                        help="learner.compile values of the group part: eager, and the update as CUDA graphs")
     parser.add_argument("--parts", default="modes,sweep,group", help="which parts to run (default all three)")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -156,10 +160,12 @@ def main() -> None:
                       f"{row['wall_seconds']:.1f} |", flush=True)
     if "group" in args.parts:
         print(f"\n{args.env}, seeds as one group (layered train --seeds K)\n\n"
-              "| K | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|")
+              "| K | learner.compile | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|---|")
         for k in map(int, args.groups.split(",")):
-            row = group(args.device, k, args.steps, args.warmup, args.env)
-            print(f"| {k} | {row['aggregate']:.0f} | {row['per_seed']:.0f} | {row['wall_seconds']:.1f} |", flush=True)
+            for mode in args.group_modes.split(","):
+                row = group(args.device, k, args.steps, args.warmup, args.env, mode)
+                print(f"| {k} | {mode} | {row['aggregate']:.0f} | {row['per_seed']:.0f} | {row['wall_seconds']:.1f} |",
+                      flush=True)
 
 
 if __name__ == "__main__":

@@ -45,6 +45,7 @@ from layered.group_state import (
 from layered.interrupt import StopRequest, Stopped
 from layered.learner_set import build_learners, keep_start_weights, start_from_weights
 from layered.learners.choice_group import ChoiceLearnerGroup, GateTD3Group, TempoRLGroup
+from layered.learners.td3 import TD3Config
 from layered.learners.td3_group import GroupLosses, TD3Group
 from layered.logs import CsvLog
 from layered.orders import Phase
@@ -94,6 +95,15 @@ def check_group(recipe: Recipe) -> None:
         if kind not in STACKED:
             out.append((f"layers[{i}].learner.kind", f"layer {layer.name!r} uses the {kind!r} learner, which does "
                         "not train as a group yet (train its seeds with `layered sweep`)"))
+            continue
+        config = recipe.learner_config(i)
+        assert isinstance(config, TD3Config), "every stacked learner is a kind of TD3"
+        if config.compile == "inductor":
+            out.append((f"layers[{i}].learner.compile", "a group's update runs eagerly ('off') or as CUDA graphs "
+                        "('cudagraphs'), not compiled by inductor"))
+        if config.actor_anchor:
+            out.append((f"layers[{i}].learner.actor_anchor", "a group does not train with an actor anchor yet "
+                        "(train its seeds with `layered sweep`)"))
     out += unavailable_settings(recipe)
     if (problem := _checkpoint_problem(recipe.env.id)) is not None:
         out.append(("env.id", f"{problem}; a group checkpoints its environments mid-episode (train its seeds "

@@ -114,6 +114,11 @@ def test_what_a_group_cannot_train_is_refused_before_anything_is_written(tmp_pat
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "'centre' learner" in err[0] and "layered sweep" in err[0]
     assert not out.exists()
+    assert main(["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", "2", "--out", str(out),
+                 "learner.compile=inductor", "learner.actor_anchor=0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "learner.compile" in err and "'cudagraphs'" in err and "learner.actor_anchor" in err
+    assert not out.exists()
     for bad in ("3-1", "1,1", "x"):
         with pytest.raises(SystemExit) as stop:
             main(["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", bad, "--out", str(out)])

@@ -11,6 +11,7 @@ from functools import partial
 from pathlib import Path
 
 import pytest
+import torch
 from conftest import assert_same_run, kill_when, passed
 
 from layered.rundir import RunDirError
@@ -49,6 +50,9 @@ def assert_same_group(a: Path, b: Path, seeds) -> None:
     ("dmc-cartpole-balance/td3.toml", [], 200, [(0, 123)]),  # a dm_control task
     ("pendulum/tla-joint.toml", ["layers.slow.warmup=20"], 400, [(0, 157)]),  # the learned gate (td3-gate)
     ("pendulum/temporl.toml", ["layers.fast.period=2"], 400, [(0, 155)]),  # a repeat under way (temporl)
+    pytest.param("pendulum/tla-c.toml", ["learner.device=cuda", "learner.compile=cudagraphs"], 300,
+                 [(0, 137), (1, 151)], marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU"),
+                 id="cudagraphs"),  # updates captured, then eager again after each resume until captured anew
 ])
 def test_a_group_stopped_mid_episode_resumes_to_the_same_files(recipe, overrides, steps, moments, tmp_path,
                                                                monkeypatch):

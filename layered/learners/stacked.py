@@ -86,9 +86,22 @@ class StackedAdam:
             p.grad = None
 
     @torch.no_grad()
-    def step(self, rows: np.ndarray) -> None:
-        """One Adam step of the seeds in the `rows` mask ([K] booleans) from the parameters' gradients."""
-        seeds = np.flatnonzero(rows).tolist()
+    def step(self, rows: np.ndarray | torch.Tensor) -> None:
+        """One Adam step of the seeds in `rows` from the parameters' gradients. `rows` is a [K] boolean mask on
+        the host, and only its seeds are handed to Adam; or a [K] float mask of 0s and 1s on the device, and
+        every seed is stepped and the others put back, without reading the mask on the host (for a captured
+        update)."""
+        if isinstance(rows, np.ndarray):
+            self._adam(np.flatnonzero(rows).tolist())
+            return
+        before = [t.clone() for t in (*self.params, *self.exp_avg, *self.exp_avg_sq)]
+        self._adam(range(self._counts.shape[1]))
+        for t, kept in zip((*self.params, *self.exp_avg, *self.exp_avg_sq), before, strict=True):
+            t.copy_(torch.where(rows.view((-1,) + (1,) * (t.dim() - 1)) > 0, t, kept))
+        self._counts -= 1 - rows  # (small whole numbers: exact)
+
+    def _adam(self, seeds: Sequence[int]) -> None:
+        """torch's fused Adam on the given seeds' slices of every parameter, each slice with its own count."""
         if not seeds:
             return
         slices: list[list[torch.Tensor]] = [[], [], [], [], []]  # params, grads, moments, squared moments, counts
@@ -194,7 +207,7 @@ class StackedReplay:
 
 
 def masked(rows: np.ndarray, device: torch.device) -> torch.Tensor:
-    """A [K] boolean mask as a float mask of 0s and 1s (the weights of a masked soft update)."""
+    """A [K] boolean mask as the float mask of 0s and 1s of the device's side."""
     return torch.as_tensor(rows, dtype=torch.float32, device=device)
 
 

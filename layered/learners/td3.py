@@ -66,7 +66,10 @@ class TD3Config(LearnerConfig):
     compile: Literal["off", "inductor", "cudagraphs"] = "off"
     """Compile the critic and actor steps with torch.compile: `inductor` (its default mode), or
     `cudagraphs` (mode reduce-overhead, which also replays the steps as CUDA graphs; GPU only).
-    The first updates then wait for compilation; results match eager ones closely, not bit for bit."""
+    The first updates then wait for compilation; results match eager ones closely, not bit for bit.
+    In a group (`--seeds`), `cudagraphs` captures the whole update of all its seeds (sampling, both
+    critics, the actor's step, the targets) after three eager updates, as one CUDA graph with the
+    actor's step and one without, one of them replayed per update; `inductor` is refused there."""
 
 
     def on_device(self, device: str) -> TD3Config:

@@ -14,12 +14,14 @@ single `TD3` learner's `state_dict`, so that each seed can be written, evaluated
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
+from layered.learners.graphed import GraphedStep
 from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, follow, masked
 from layered.learners.td3 import TD3, TD3Config
 
@@ -34,6 +36,9 @@ def transition_rows(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, nex
 
 DecisionPath = Sequence[tuple[np.ndarray, float, int]]
 """A repeating layer's decision, per period of its repeat: (its observation, its reward, discount units)."""
+
+Mask = np.ndarray | torch.Tensor
+"""Which seeds take part: [K] booleans on the host, or [K] 0s and 1s on the device (inside a captured step)."""
 
 GroupLosses = dict[str, tuple[torch.Tensor, np.ndarray]]
 """What one update of a group returns: per loss name, its value for every seed ([K], on the device) and the
@@ -50,8 +55,9 @@ class TD3Group:
         group's own generators (minibatch indices, smoothing, exploration and warm-up draws)."""
         first = learners[0]
         self.config: TD3Config = first.config
-        if self.config.compile != "off" or self.config.actor_anchor:
-            raise ValueError("a TD3 group runs eagerly, without actor_anchor (for now)")
+        if self.config.compile == "inductor" or self.config.actor_anchor:
+            raise ValueError("a TD3 group runs eagerly or as CUDA graphs (compile 'off' or 'cudagraphs'), without "
+                             "actor_anchor (for now)")
         self.k = len(learners)
         self.device = first.device
         self.action_space = first.action_space
@@ -79,6 +85,14 @@ class TD3Group:
         self.torch_rng = torch.Generator(self.device).manual_seed(seed)
         self.rng = np.random.default_rng(seed)
         self.updates = np.zeros(self.k, np.int64)  # per seed
+        # with compile = "cudagraphs": the update, with and without the actor's step, as CUDA graphs replayed on
+        # the masks of the seeds that update, act and follow, which each update writes here
+        self._masks = torch.zeros((3, self.k), device=self.device)
+        rows, acting, delayed = self._masks
+        self._graphed = None if self.config.compile == "off" else {
+            with_actor: GraphedStep(functools.partial(self._update_step, rows, acting, delayed, with_actor),
+                                    self.device, [self.torch_rng])
+            for with_actor in (False, True)}
 
     def actions(self, obs: torch.Tensor, net: StackedMLP) -> torch.Tensor:
         """`net`'s actions for `obs` ([K, batch, obs]), squashed into the action bounds as the single actor does."""
@@ -124,22 +138,38 @@ class TD3Group:
         rows = (self.replay.stored > 0) if rows is None else rows & (self.replay.stored > 0)
         if not rows.any():
             return None
-        batch = self.sample()
-        noise = torch.randn(batch[1].shape, generator=self.torch_rng, device=self.device)
-        losses = {"critic": (self.critic_step(batch, noise, rows), rows)}
         self.updates[rows] += 1
         delayed = rows & (self.updates % self.config.policy_delay == 0)
         acting = delayed & (self.updates > self.config.critic_warmup)
-        if (waiting := delayed & ~acting).any():  # the critic's targets alone: the actor waits
-            follow(*self._critic_pairs, self._mask(waiting) * self.config.tau)
-        if acting.any():
-            losses["actor"] = (self.actor_step(batch[0], acting), acting)
+        with_actor = bool(acting.any())
+        if self._graphed is None:
+            critic, actor = self._update_step(rows, acting, delayed, with_actor)
+        else:
+            self._masks.copy_(torch.from_numpy(np.stack([rows, acting, delayed]).astype(np.float32)))
+            critic, actor = self._graphed[with_actor]()
+        losses = {"critic": (critic, rows)}
+        if actor is not None:
+            losses["actor"] = (actor, acting)
         return losses
 
-    def _mask(self, rows: np.ndarray) -> torch.Tensor:
-        return masked(rows, self.device)
+    def _update_step(self, rows: Mask, acting: Mask, delayed: Mask, with_actor: bool
+                     ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """A critic step of the `rows` seeds, an actor step of the `acting` ones (`with_actor`), and the
+        critics' targets of the `delayed` ones that do not act yet followed; the losses per seed. The masks
+        are on the host, or on the device for a step that never reads them back (a captured one)."""
+        batch = self.sample()
+        noise = torch.randn(batch[1].shape, generator=self.torch_rng, device=self.device)
+        critic = self.critic_step(batch, noise, rows)
+        actor = self.actor_step(batch[0], acting) if with_actor else None
+        if isinstance(delayed, torch.Tensor) or (delayed & ~acting).any():
+            follow(*self._critic_pairs, (self._weights(delayed) - self._weights(acting)) * self.config.tau)
+        return critic, actor
 
-    def critic_step(self, batch: tuple[torch.Tensor, ...], noise: torch.Tensor, rows: np.ndarray | None = None
+    def _weights(self, rows: Mask) -> torch.Tensor:
+        """A mask as the device's [K] float mask of 0s and 1s."""
+        return rows if isinstance(rows, torch.Tensor) else masked(rows, self.device)
+
+    def critic_step(self, batch: tuple[torch.Tensor, ...], noise: torch.Tensor, rows: Mask | None = None
                     ) -> torch.Tensor:
         """One critic step of the seeds in the `rows` mask (default all) on their minibatches,
         with standard-normal smoothing `noise`; the losses per seed."""
@@ -159,7 +189,7 @@ class TD3Group:
         self.critic_opt.step(np.ones(self.k, bool) if rows is None else rows)
         return losses.detach()
 
-    def actor_step(self, obs: torch.Tensor, rows: np.ndarray | None = None) -> torch.Tensor:
+    def actor_step(self, obs: torch.Tensor, rows: Mask | None = None) -> torch.Tensor:
         """One actor step of the seeds in the `rows` mask (default all) through their Q1, then the soft update
         of their targets; the losses per seed."""
         rows = np.ones(self.k, bool) if rows is None else rows
@@ -169,7 +199,7 @@ class TD3Group:
         self.actor_opt.zero_grad()
         losses.sum().backward()
         self.actor_opt.step(rows)
-        weight = self._mask(rows) * self.config.tau
+        weight = self._weights(rows) * self.config.tau
         follow(*self._actor_pair, weight)
         follow(*self._critic_pairs, weight)
         return losses.detach()
@@ -197,8 +227,10 @@ class TD3Group:
         self.rng.bit_generator.state = state["rng"]
 
     def _precision(self) -> torch.autocast:
-        """The precision of the update's matrix products (see TD3Config.precision): as a single learner's."""
-        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.precision == "bfloat16")
+        """The precision of the update's matrix products (see TD3Config.precision): as a single learner's (no
+        weight is cast twice in one region, so autocast's cache of casts, which a captured step forbids, is off)."""
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.precision == "bfloat16",
+                              cache_enabled=False)
 
     def seed_state_dict(self, k: int) -> dict[str, Any]:
         """Seed k's networks as a single `TD3` learner's `state_dict` holds them (the optimisers' moments

@@ -1,0 +1,58 @@
+"""A learner's update replayed as one CUDA graph: its kernels launched by a single call instead of one
+launch per operation, which is what bounds a small network's update on a GPU.
+
+The step handed to `GraphedStep` takes no arguments: it reads everything from tensors that stay where
+they are (networks, moments, replay rows, masks that the caller fills in place before each call) and
+returns tensors. It must not read a value back to the host (`.item()`, `bool(t)`, `.cpu()`), draw
+from a generator the graph does not know, or make shapes that depend on values; `tests/test_graphed.py`
+checks a group's update for all three on any machine. The step's first `eager` calls run as they are,
+so that lazily made state (gradients, optimiser moments, library handles) exists before the capture;
+the next call captures it, and every call from then on replays it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Generic, TypeVar
+
+import torch
+from torch.utils._pytree import tree_map
+
+Out = TypeVar("Out")
+
+
+class GraphedStep(Generic[Out]):
+    """`step` run eagerly `eager` times, then captured as a CUDA graph and replayed; on a CPU, always eager."""
+
+    def __init__(self, step: Callable[[], Out], device: torch.device, generators: Sequence[torch.Generator] = (),
+                 eager: int = 3) -> None:
+        """`generators`: those `step` draws from, registered with the graph so that each replay advances them."""
+        self.step, self.device, self.generators, self.eager = step, device, list(generators), eager
+        self.calls = 0
+        self.graph: torch.cuda.CUDAGraph | None = None
+        self.outputs: Out | None = None
+
+    @property
+    def captured(self) -> bool:
+        return self.graph is not None
+
+    def __call__(self) -> Out:
+        """One step; its outputs are copies, so that they outlive the next replay."""
+        self.calls += 1
+        if self.device.type != "cuda" or self.calls <= self.eager:
+            return self.step()
+        if self.graph is None:
+            self._capture()
+        assert self.graph is not None
+        self.graph.replay()
+        return tree_map(lambda t: t.clone() if isinstance(t, torch.Tensor) else t, self.outputs)
+
+    def _capture(self) -> None:
+        """Record the step's kernels (nothing runs while they are recorded: the replay that follows runs them)."""
+        torch.cuda.synchronize(self.device)
+        graph = torch.cuda.CUDAGraph()
+        for generator in self.generators:
+            graph.register_generator_state(generator)
+        with torch.cuda.graph(graph):
+            self.outputs = self.step()
+        self.graph = graph

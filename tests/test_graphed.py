@@ -1,0 +1,129 @@
+"""A group's update as one CUDA graph: the update on masks kept on the device, which a captured step
+replays, is the update on the host's masks; and it does nothing that a capture forbids (checked here on
+any machine, by the operations it dispatches). The capture itself is checked where there is a GPU."""
+
+import functools
+
+import numpy as np
+import pytest
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from layered.learners.graphed import GraphedStep
+from layered.learners.td3 import TD3Config
+from layered.learners.td3_group import TD3Group
+from test_td3_group import fill, flat_state, learners
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
+MASKS = [np.array(m) for m in ([1, 1, 1], [1, 0, 1], [0, 1, 1], [1, 1, 0], [0, 0, 1], [1, 1, 1])]
+"""The seeds that update, update after update: every mix, so that the seeds' counts (and policy delays) part."""
+
+
+def on_device_masks(group: TD3Group) -> TD3Group:
+    """`group` updating as a captured group does, through `GraphedStep`s and its device masks (on a CPU the
+    steps run eagerly, so this is the update that a GPU captures, run as it is)."""
+    rows, acting, delayed = group._masks
+    group._graphed = {with_actor: GraphedStep(functools.partial(group._update_step, rows, acting, delayed, with_actor),
+                                              group.device, [group.torch_rng])
+                      for with_actor in (False, True)}
+    return group
+
+
+def paired(config: TD3Config) -> tuple[TD3Group, TD3Group]:
+    host, device = TD3Group(learners([0, 1, 2], config)), on_device_masks(TD3Group(learners([0, 1, 2], config)))
+    for group in (host, device):
+        fill(group, [0, 1, 2])
+    return host, device
+
+
+@pytest.mark.parametrize("critic_warmup", [0, 3])
+def test_the_update_on_device_masks_is_the_update_on_host_masks(critic_warmup):
+    """Bit for bit, seeds left out and seeds whose actor still waits included: left-out seeds are stepped
+    by Adam and put back exactly, and a follow by 0 leaves a target as it is."""
+    host, device = paired(TD3Config(hidden=(32, 16), batch_size=8, buffer_size=100, critic_warmup=critic_warmup))
+    for mask in MASKS:
+        a, b = host.update(mask.astype(bool)), device.update(mask.astype(bool))
+        assert a is not None and b is not None and a.keys() == b.keys()
+        for name in a:
+            assert np.array_equal(a[name][1], b[name][1])
+            rows = a[name][1]
+            assert torch.equal(a[name][0][rows], b[name][0][rows]), name
+    assert list(host.updates) == list(device.updates) == [4, 4, 5]
+    for k in range(3):
+        mine, theirs = flat_state(host, k), flat_state(device, k)
+        assert mine.keys() == theirs.keys()
+        for key in mine:
+            assert torch.equal(mine[key], theirs[key]), f"seed {k}: {key}"
+
+
+class Dispatched(TorchDispatchMode):
+    """Every operation dispatched inside, with its arguments."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls: list[tuple[str, tuple, dict]] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        self.calls.append((str(func.overloadpacket.__name__), args, kwargs))
+        return func(*args, **kwargs)
+
+
+READS_BACK = {"_local_scalar_dense", "item", "is_nonzero", "equal", "nonzero", "masked_select", "unique",
+              "_unique2", "argwhere"}
+"""Operations that read a value on the host or make a shape from values: a capture cannot hold them."""
+
+
+@pytest.mark.parametrize("with_actor", [False, True])
+def test_the_captured_update_reads_nothing_back_and_draws_from_its_own_generator(with_actor):
+    group = on_device_masks(TD3Group(learners([0, 1, 2])))
+    fill(group, [0, 1, 2])
+    group.update()  # gradients and moments exist, as after the eager calls that come before a capture
+    group._masks.copy_(torch.tensor([[1.0, 0.0, 1.0], [1.0, 0.0, 0.0], [1.0, 0.0, 1.0]]))
+    drawn_from = group.torch_rng.get_state()
+    with Dispatched() as seen:
+        group._graphed[with_actor].step()
+    names = {name for name, _, _ in seen.calls}
+    assert not names & READS_BACK, names & READS_BACK
+    assert "_fused_adam_" in names and ("baddbmm" in names)
+    draws = [(name, kwargs.get("generator")) for name, _, kwargs in seen.calls
+             if name in {"rand", "randn", "normal", "uniform_", "normal_", "randint", "bernoulli"}]
+    assert [name for name, _ in draws] == ["rand", "randn"]  # the minibatch's indices, the smoothing noise
+    assert all(generator is not None for _, generator in draws)  # not the process's default generator
+    assert not torch.equal(group.torch_rng.get_state(), drawn_from)  # but the group's
+    boolean_indexing = [name for name, args, _ in seen.calls if name.startswith("index")
+                        and any(isinstance(i, torch.Tensor) and i.dtype == torch.bool
+                                for a in args if isinstance(a, (list, tuple)) for i in a)]
+    assert not boolean_indexing
+
+
+def test_a_graphed_step_runs_eagerly_on_a_cpu():
+    calls = []
+    step = GraphedStep(lambda: calls.append(1) or torch.ones(1), torch.device("cpu"), eager=1)
+    for _ in range(3):
+        assert torch.equal(step(), torch.ones(1))
+    assert len(calls) == 3 and not step.captured
+
+
+@CUDA
+def test_a_captured_group_update_is_the_eager_one_on_the_gpu():
+    """Captured after its eager calls, replayed with new masks each time; the same numbers as eager updates
+    (the same kernels, launched by the graph) and the losses of each replay kept."""
+    config = TD3Config(hidden=(64, 64), batch_size=32, buffer_size=200, device="cuda")
+    eager = TD3Group(learners([0, 1, 2], config))
+    graphed = TD3Group(learners([0, 1, 2], config.model_copy(update={"compile": "cudagraphs"})))
+    for group in (eager, graphed):
+        fill(group, [0, 1, 2])
+    losses = []
+    for mask in MASKS * 2:
+        a, b = eager.update(mask.astype(bool)), graphed.update(mask.astype(bool))
+        losses.append((a, b))
+    assert graphed._graphed is not None and any(step.captured for step in graphed._graphed.values())
+    for a, b in losses:
+        for name in a:
+            rows = a[name][1]
+            assert torch.allclose(a[name][0][rows], b[name][0][rows], rtol=1e-5, atol=1e-6), name
+    for k in range(3):
+        mine, theirs = flat_state(eager, k), flat_state(graphed, k)
+        for key in mine:
+            assert torch.allclose(mine[key].float(), theirs[key].float(), rtol=1e-4, atol=1e-5), f"seed {k}: {key}"
