@@ -2,6 +2,7 @@
 replays, is the update on the host's masks; and it does nothing that a capture forbids (checked here on
 any machine, by the operations it dispatches). The capture itself is checked where there is a GPU."""
 
+import contextlib
 import functools
 
 import numpy as np
@@ -103,6 +104,53 @@ def test_a_graphed_step_runs_eagerly_on_a_cpu():
     for _ in range(3):
         assert torch.equal(step(), torch.ones(1))
     assert len(calls) == 3 and not step.captured
+
+
+class FakeStream:
+    def __init__(self, *args):
+        self.waited_for = []
+
+    def wait_stream(self, other):
+        self.waited_for.append(other)
+
+
+class FakeGraph:
+    """Stands for a CUDA graph on a CPU: the capture runs the step once (a real one only records it)."""
+
+    def __init__(self):
+        self.generators, self.replays, self.stream = [], 0, None
+
+    def register_generator_state(self, generator):
+        self.generators.append(generator)
+
+    def replay(self):
+        self.replays += 1
+
+
+def test_a_graphed_step_is_eager_on_the_capture_stream_then_captured_once_then_replayed(monkeypatch):
+    """The bookkeeping of the GPU path, with torch.cuda's graph and streams stood in for."""
+    graphs, streams, current = [], [], FakeStream()
+
+    @contextlib.contextmanager
+    def capturing(graph, stream):
+        graph.stream = stream
+        yield
+
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", lambda: graphs.append(FakeGraph()) or graphs[-1])
+    monkeypatch.setattr(torch.cuda, "Stream", lambda device: streams.append(FakeStream()) or streams[-1])
+    monkeypatch.setattr(torch.cuda, "current_stream", lambda device: current)
+    monkeypatch.setattr(torch.cuda, "stream", lambda stream: contextlib.nullcontext())
+    monkeypatch.setattr(torch.cuda, "graph", capturing)
+    generator, calls = torch.Generator(), []
+    step = GraphedStep(lambda: calls.append(1) or torch.full((2,), float(len(calls))), torch.device("cuda"),
+                       [generator], eager=3)
+    outputs = [step() for _ in range(6)]
+    assert len(calls) == 4 and len(graphs) == 1 and len(streams) == 1  # 3 eager calls and the capture's
+    graph = graphs[0]
+    assert graph.generators == [generator] and graph.stream is streams[0] and graph.replays == 3
+    assert [float(o[0]) for o in outputs] == [1.0, 2.0, 3.0, 4.0, 4.0, 4.0]
+    assert outputs[3] is not step.outputs and outputs[4] is not outputs[5]  # copies, each outliving the next replay
+    assert streams[0].waited_for == [current] * 4 and current.waited_for == [streams[0]] * 4
 
 
 @CUDA

@@ -30,6 +30,7 @@ class GraphedStep(Generic[Out]):
         self.step, self.device, self.generators, self.eager = step, device, list(generators), eager
         self.calls = 0
         self.graph: torch.cuda.CUDAGraph | None = None
+        self.stream: torch.cuda.Stream | None = None
         self.outputs: Out | None = None
 
     @property
@@ -39,20 +40,34 @@ class GraphedStep(Generic[Out]):
     def __call__(self) -> Out:
         """One step; its outputs are copies, so that they outlive the next replay."""
         self.calls += 1
-        if self.device.type != "cuda" or self.calls <= self.eager:
+        if self.device.type != "cuda":
             return self.step()
+        if self.calls <= self.eager:
+            return self._on_capture_stream(self.step)
         if self.graph is None:
-            self._capture()
+            self._on_capture_stream(self._capture)
         assert self.graph is not None
         self.graph.replay()
         return tree_map(lambda t: t.clone() if isinstance(t, torch.Tensor) else t, self.outputs)
 
-    def _capture(self) -> None:
+    def _on_capture_stream(self, work: Callable[[], Out]) -> Out:
+        """`work` on the stream the capture uses (libraries keep handles per stream: the eager calls make
+        them there, before the capture), ordered after and before the current stream's work."""
+        if self.stream is None:
+            self.stream = torch.cuda.Stream(self.device)
+        current = torch.cuda.current_stream(self.device)
+        self.stream.wait_stream(current)
+        with torch.cuda.stream(self.stream):
+            out = work()
+        current.wait_stream(self.stream)
+        return out
+
+    def _capture(self) -> Out:
         """Record the step's kernels (nothing runs while they are recorded: the replay that follows runs them)."""
-        torch.cuda.synchronize(self.device)
         graph = torch.cuda.CUDAGraph()
         for generator in self.generators:
             graph.register_generator_state(generator)
-        with torch.cuda.graph(graph):
+        with torch.cuda.graph(graph, stream=self.stream):
             self.outputs = self.step()
         self.graph = graph
+        return self.outputs
