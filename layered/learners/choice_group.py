@@ -22,7 +22,7 @@ from layered.learners.choice import ChoiceQ, TD3WithChoice
 from layered.learners.gate_td3 import GateTD3
 from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay
 from layered.learners.td3 import TD3
-from layered.learners.td3_group import DecisionPath, GroupLosses, TD3Group, transition_rows
+from layered.learners.td3_group import DecisionPath, GroupLosses, TD3Group, pick, transition_rows
 from layered.learners.temporl import TempoRL, skip_transitions
 
 
@@ -60,15 +60,16 @@ class ChoiceGroup:
         rows = rows & (self.replay.stored > 0)
         if not rows.any():
             return
-        obs, action, choice, reward, next_obs, not_done, discount = self.replay.sample(
-            self.td3.config.batch_size, self.td3.torch_rng)
+        seeds = self.td3.subset(rows)  # (the seeds that learn alone are computed)
+        obs, action, choice, reward, next_obs, not_done, discount = (
+            pick(t, seeds) for t in self.replay.sample(self.td3.config.batch_size, self.td3.torch_rng))
         with torch.no_grad():
-            pair = torch.cat([next_obs, self.td3.actions(next_obs, self.td3.actor_target)], dim=-1)
-            value = self.td3.q1_target(pair)
+            pair = torch.cat([next_obs, self.td3.actions(next_obs, self.td3.actor_target, seeds)], dim=-1)
+            value = self.td3.q1_target(pair, seeds=seeds)
             if self.head == "min":
-                value = torch.min(value, self.td3.q2_target(pair))
+                value = torch.min(value, self.td3.q2_target(pair, seeds=seeds))
             target = reward + not_done * discount * value
-        chosen = self.net(torch.cat([obs, action], dim=-1)).gather(-1, choice.long())
+        chosen = self.net(torch.cat([obs, action], dim=-1), seeds=seeds).gather(-1, choice.long())
         losses = (chosen - target).square().mean(dim=(1, 2))
         self.opt.zero_grad()
         losses.sum().backward()

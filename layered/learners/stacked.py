@@ -35,10 +35,13 @@ class StackedMLP(nn.Module):
         """Each layer's biases, [K, 1, out]."""
         return list(self.stacked)[1::2]
 
-    def forward(self, x: torch.Tensor, frozen: bool = False) -> torch.Tensor:
-        """`x`: [K, batch, in] -> [K, batch, out]; with `frozen`, the weights take no gradient."""
+    def forward(self, x: torch.Tensor, frozen: bool = False, seeds: torch.Tensor | None = None) -> torch.Tensor:
+        """`x`: [K, batch, in] -> [K, batch, out], or with `seeds` (indices) only those seeds' networks, `x`
+        being [len(seeds), batch, in]; with `frozen`, the weights take no gradient."""
         last = len(self.stacked) // 2 - 1
         for j, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
+            if seeds is not None:
+                weight, bias = weight.index_select(0, seeds), bias.index_select(0, seeds)
             if frozen:
                 weight, bias = weight.detach(), bias.detach()
             x = torch.baddbmm(bias, x, weight)

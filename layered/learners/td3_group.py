@@ -26,6 +26,11 @@ from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, fol
 from layered.learners.td3 import TD3, TD3Config
 
 
+def pick(t: torch.Tensor, seeds: torch.Tensor | None) -> torch.Tensor:
+    """The rows of `seeds` of a [K, ...] tensor (all of them for None)."""
+    return t if seeds is None else t.index_select(0, seeds)
+
+
 def transition_rows(obs: np.ndarray, action: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
                     terminated: np.ndarray, discount: np.ndarray) -> np.ndarray:
     """One transition per seed as replay rows: obs, action, reward, next obs, not done, discount."""
@@ -94,9 +99,10 @@ class TD3Group:
                                     self.device, [self.torch_rng])
             for with_actor in (False, True)}
 
-    def actions(self, obs: torch.Tensor, net: StackedMLP) -> torch.Tensor:
-        """`net`'s actions for `obs` ([K, batch, obs]), squashed into the action bounds as the single actor does."""
-        return self.centre + self.scale * torch.tanh(net(obs))
+    def actions(self, obs: torch.Tensor, net: StackedMLP, seeds: torch.Tensor | None = None) -> torch.Tensor:
+        """`net`'s actions for `obs` ([K, batch, obs], or those of `seeds`), squashed into the action bounds as the
+        single actor does."""
+        return self.centre + self.scale * torch.tanh(net(obs, seeds=seeds))
 
     @torch.inference_mode()
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
@@ -173,28 +179,33 @@ class TD3Group:
                     ) -> torch.Tensor:
         """One critic step of the seeds in the `rows` mask (default all) on their minibatches,
         with standard-normal smoothing `noise`; the losses per seed."""
-        obs, action, reward, next_obs, not_done, discount = batch
+        seeds = self.subset(rows)
+        obs, action, reward, next_obs, not_done, discount, noise = (pick(t, seeds) for t in (*batch, noise))
         cfg = self.config
         with torch.no_grad(), self._precision():
             noise = (noise * cfg.policy_noise).clamp(-cfg.noise_clip, cfg.noise_clip)
-            next_action = (self.actions(next_obs, self.actor_target) + noise * self.scale).clamp(self._low, self._high)
+            next_action = (self.actions(next_obs, self.actor_target, seeds) + noise * self.scale
+                           ).clamp(self._low, self._high)
             pair = torch.cat([next_obs, next_action], dim=-1)
-            target = reward + not_done * discount * torch.min(self.q1_target(pair), self.q2_target(pair))
+            target = reward + not_done * discount * torch.min(self.q1_target(pair, seeds=seeds),
+                                                              self.q2_target(pair, seeds=seeds))
         with self._precision():
             pair = torch.cat([obs, action], dim=-1)
-            losses = ((self.q1(pair) - target).float().square().mean(dim=(1, 2))
-                      + (self.q2(pair) - target).float().square().mean(dim=(1, 2)))
+            losses = ((self.q1(pair, seeds=seeds) - target).float().square().mean(dim=(1, 2))
+                      + (self.q2(pair, seeds=seeds) - target).float().square().mean(dim=(1, 2)))
         self.critic_opt.zero_grad()
         losses.sum().backward()
         self.critic_opt.step(np.ones(self.k, bool) if rows is None else rows)
-        return losses.detach()
+        return self._per_seed(losses.detach(), seeds)
 
     def actor_step(self, obs: torch.Tensor, rows: Mask | None = None) -> torch.Tensor:
         """One actor step of the seeds in the `rows` mask (default all) through their Q1, then the soft update
         of their targets; the losses per seed."""
         rows = np.ones(self.k, bool) if rows is None else rows
+        seeds = self.subset(rows)
+        obs = pick(obs, seeds)
         with self._precision():
-            q1 = self.q1(torch.cat([obs, self.actions(obs, self.actor)], dim=-1), frozen=True)
+            q1 = self.q1(torch.cat([obs, self.actions(obs, self.actor, seeds)], dim=-1), frozen=True, seeds=seeds)
             losses = -q1.float().mean(dim=(1, 2))
         self.actor_opt.zero_grad()
         losses.sum().backward()
@@ -202,7 +213,18 @@ class TD3Group:
         weight = self._weights(rows) * self.config.tau
         follow(*self._actor_pair, weight)
         follow(*self._critic_pairs, weight)
-        return losses.detach()
+        return self._per_seed(losses.detach(), seeds)
+
+    def subset(self, rows: Mask | None) -> torch.Tensor | None:
+        """The indices of the seeds in a host mask that leaves some out, whose networks alone a step then
+        computes; None (every seed computed) for all seeds or a device mask, which the host does not read."""
+        if rows is None or isinstance(rows, torch.Tensor) or rows.all():
+            return None
+        return torch.as_tensor(np.flatnonzero(rows), device=self.device)
+
+    def _per_seed(self, values: torch.Tensor, seeds: torch.Tensor | None) -> torch.Tensor:
+        """[K] values from those of `seeds` (0 for the others)."""
+        return values if seeds is None else torch.zeros(self.k, device=self.device).index_copy_(0, seeds, values)
 
     NETS = ("actor", "q1", "q2", "actor_target", "q1_target", "q2_target")
 
