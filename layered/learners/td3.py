@@ -62,7 +62,8 @@ class TD3Config(LearnerConfig):
     precision: Literal["float32", "bfloat16"] = "float32"
     """Precision of the updates' matrix products; `bfloat16` (autocast, weights and optimiser
     kept in float32) is about a third faster on CPUs with AVX-512 BF16 or AMX. Acting is float32.
-    It learns Pendulum as float32 does, but not real-time InvertedDoublePendulum (docs/experiments.md)."""
+    It learns Pendulum as float32 does, but not real-time InvertedDoublePendulum, nor real-time Hopper
+    in two seeds of three (docs/experiments.md)."""
     compile: Literal["off", "inductor", "cudagraphs"] = "off"
     """Compile the critic and actor steps with torch.compile: `inductor` (its default mode), or
     `cudagraphs` (mode reduce-overhead, which also replays the steps as CUDA graphs; GPU only).
