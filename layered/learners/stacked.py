@@ -210,7 +210,7 @@ class StackedReplay:
 
 
 def masked(rows: np.ndarray, device: torch.device) -> torch.Tensor:
-    """A [K] boolean mask as the float mask of 0s and 1s of the device's side."""
+    """A [K] boolean mask as a float mask of 0s and 1s on `device` (the weights of a masked soft update)."""
     return torch.as_tensor(rows, dtype=torch.float32, device=device)
 
 

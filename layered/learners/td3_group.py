@@ -179,6 +179,7 @@ class TD3Group:
                     ) -> torch.Tensor:
         """One critic step of the seeds in the `rows` mask (default all) on their minibatches,
         with standard-normal smoothing `noise`; the losses per seed."""
+        rows = np.ones(self.k, bool) if rows is None else rows
         seeds = self.subset(rows)
         obs, action, reward, next_obs, not_done, discount, noise = (pick(t, seeds) for t in (*batch, noise))
         cfg = self.config
@@ -195,7 +196,7 @@ class TD3Group:
                       + (self.q2(pair, seeds=seeds) - target).float().square().mean(dim=(1, 2)))
         self.critic_opt.zero_grad()
         losses.sum().backward()
-        self.critic_opt.step(np.ones(self.k, bool) if rows is None else rows)
+        self.critic_opt.step(rows)
         return self._per_seed(losses.detach(), seeds)
 
     def actor_step(self, obs: torch.Tensor, rows: Mask | None = None) -> torch.Tensor:
@@ -215,10 +216,10 @@ class TD3Group:
         follow(*self._critic_pairs, weight)
         return self._per_seed(losses.detach(), seeds)
 
-    def subset(self, rows: Mask | None) -> torch.Tensor | None:
+    def subset(self, rows: Mask) -> torch.Tensor | None:
         """The indices of the seeds in a host mask that leaves some out, whose networks alone a step then
         computes; None (every seed computed) for all seeds or a device mask, which the host does not read."""
-        if rows is None or isinstance(rows, torch.Tensor) or rows.all():
+        if isinstance(rows, torch.Tensor) or rows.all():
             return None
         return torch.as_tensor(np.flatnonzero(rows), device=self.device)
 
