@@ -9,7 +9,8 @@ file they write that a change to the code must leave as it is.
 A refactoring of the stack's rules, the loop or the learners is behaviour-preserving when the two
 listings match on one machine: metrics.csv, episodes.csv, results.json and every checkpoint. Floating
 point differs between machines, so the hashes are compared between runs on the same one, never stored.
-Each run is small (networks of 32-32, 1500 steps per phase) and one torch thread is used.
+Each run is small (networks of 32-32, 1500 steps per phase) and one torch thread is used. `--set
+learner.precision=float32` compares float32 runs on a machine where `auto` computes in bfloat16.
 """
 
 from __future__ import annotations
@@ -48,6 +49,8 @@ def main() -> None:
     parser.add_argument("out", type=Path, help="folder for the runs (one sub-folder per run)")
     parser.add_argument("--hash-only", action="store_true", help="hash the runs already in OUT; train nothing")
     parser.add_argument("--only", nargs="*", help="names of the runs to make (default: all)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a recipe setting for every run, e.g. learner.precision=float32 (repeatable)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     from layered import load_recipe, train
@@ -57,7 +60,7 @@ def main() -> None:
             continue
         run_dir = args.out / name
         if not args.hash_only:
-            train(load_recipe(ROOT / "recipes" / recipe, [*SMALL, *extra]), run_dir, max_steps=STEPS,
+            train(load_recipe(ROOT / "recipes" / recipe, [*SMALL, *extra, *args.set]), run_dir, max_steps=STEPS,
                   progress=False, label=name)
         for file, digest in digests(run_dir).items():
             print(f"{name}/{file} {digest}")

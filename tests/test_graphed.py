@@ -170,7 +170,8 @@ def test_a_graphed_step_is_eager_on_the_capture_stream_then_captured_once_then_r
 def test_a_captured_group_update_is_the_eager_one_on_the_gpu():
     """Captured after its eager calls, replayed with new masks each time; the same numbers as eager updates
     (the same kernels, launched by the graph) and the losses of each replay kept."""
-    config = TD3Config(hidden=(64, 64), batch_size=32, buffer_size=200, device="cuda")
+    config = TD3Config(hidden=(64, 64), batch_size=32, buffer_size=200, device="cuda",
+                       precision="float32")  # the capture is checked, not the precision
     eager = TD3Group(learners([0, 1, 2], config))
     graphed = TD3Group(learners([0, 1, 2], config.model_copy(update={"compile": "cudagraphs"})))
     for group in (eager, graphed):

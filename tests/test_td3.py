@@ -246,7 +246,7 @@ def test_cuda_graphs_need_a_gpu_device():
 
 
 def test_bfloat16_updates_keep_float32_weights_and_come_close_to_float32_losses():
-    full, half = filled(6), filled(6, config=CONFIG.model_copy(update={"precision": "bfloat16"}))
+    full, half = (filled(6, config=CONFIG.model_copy(update={"precision": p})) for p in ("float32", "bfloat16"))
     a, b = full.update(), half.update()
     full_loss, half_loss = a["critic"].item(), b["critic"].item()
     assert half_loss == pytest.approx(full_loss, rel=0.05) and half_loss != full_loss

@@ -16,6 +16,7 @@ from torch.func import functional_call
 
 from layered.buffer import Batch, ReplayBuffer, Transition
 from layered.learners.base import LEARNERS, Flag, Learner, LearnerConfig, Losses, Whole
+from layered.learners.precision import autocast, resolve_precision
 from layered.outputs import OutputLayout
 
 
@@ -59,11 +60,12 @@ class TD3Config(LearnerConfig):
     zero_output: Flag = False
     """Start the actor's last layer at zero, so that it outputs the middle of its range until it
     learns: a residual layer then starts by adding nothing to the layers above it."""
-    precision: Literal["float32", "bfloat16"] = "float32"
-    """Precision of the updates' matrix products; `bfloat16` (autocast, weights and optimiser
-    kept in float32) is about a third faster on CPUs with AVX-512 BF16 or AMX. Acting is float32.
-    It learns Pendulum as float32 does, but not real-time InvertedDoublePendulum, nor real-time Hopper
-    in two seeds of three (docs/experiments.md)."""
+    precision: Literal["auto", "float32", "bfloat16"] = "auto"
+    """Precision of the updates' matrix products: `bfloat16` (autocast; weights, optimiser and acting
+    stay float32), `float32`, or `auto`: bfloat16 where the device multiplies it in hardware (GPUs
+    that do; CPUs with AVX-512 BF16, AMX or Arm BF16), float32 elsewhere. bfloat16 learns as float32
+    does on the tasks checked in docs/experiments.md, at about twice the update rate on such a CPU.
+    A checkpoint records the precision its learner computed in, and a resumed run keeps it."""
     compile: Literal["off", "inductor", "cudagraphs"] = "off"
     """Compile the critic and actor steps with torch.compile: `inductor` (its default mode), or
     `cudagraphs` (mode reduce-overhead, which also replays the steps as CUDA graphs; GPU only).
@@ -133,6 +135,12 @@ def mlp(sizes: tuple[int, ...]) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def squash(x: torch.Tensor) -> torch.Tensor:
+    """tanh of the actor's last layer, always in float32: bfloat16 rounds tanh to exactly ±1 beyond |x| ≈ 3, where
+    its gradient is zero, and an actor pushed there (as real-time tasks push it) could never come back."""
+    return torch.tanh(x.float())
+
+
 class Actor(nn.Module):
     """Deterministic policy squashed into the action box by tanh."""
 
@@ -146,7 +154,7 @@ class Actor(nn.Module):
         self.register_buffer("scale", torch.as_tensor((high - low) / 2, dtype=torch.float32))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.centre + self.scale * torch.tanh(self.net(obs))
+        return self.centre + self.scale * squash(self.net(obs))
 
 
 class TwinCritic(nn.Module):
@@ -195,6 +203,7 @@ class TD3(Learner):
                  seed: int) -> None:
         super().__init__(obs_space, action_space, layout, config, seed)
         self.device = resolve_device(config.device)
+        self.precision = resolve_precision(config.precision, self.device)
         torch.manual_seed(seed)  # network initialisation, on the CPU whatever the device: the same weights
         self.torch_rng = torch.Generator(self.device).manual_seed(seed)  # target smoothing noise
         obs_dim, act_dim = obs_space.shape[0], action_space.shape[0]
@@ -310,7 +319,7 @@ class TD3(Learner):
 
     def _precision(self) -> torch.autocast:
         """The precision of the update's matrix products (see TD3Config.precision)."""
-        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.precision == "bfloat16")
+        return autocast(self.precision, self.device)
 
     def state_dict(self) -> dict[str, Any]:
         return {
@@ -322,6 +331,7 @@ class TD3(Learner):
             "critic_opt": self.critic_opt.state_dict(),
             "updates": self.updates,
             "torch_rng": self.torch_rng.get_state(),
+            "precision": self.precision,
         }
 
     def resume_state(self) -> dict[str, Any]:
@@ -340,3 +350,4 @@ class TD3(Learner):
         load_adam(self.critic_opt, state["critic_opt"], self.config.lr)
         self.updates = int(state["updates"])
         self.torch_rng.set_state(state["torch_rng"])
+        self.precision = state.get("precision", self.precision)  # (checkpoints before `auto` lack it)

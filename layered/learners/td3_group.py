@@ -22,8 +22,9 @@ import numpy as np
 import torch
 
 from layered.learners.graphed import GraphedStep
+from layered.learners.precision import autocast
 from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, follow, masked
-from layered.learners.td3 import TD3, TD3Config
+from layered.learners.td3 import TD3, TD3Config, squash
 
 
 def pick(t: torch.Tensor, seeds: torch.Tensor | None) -> torch.Tensor:
@@ -65,6 +66,7 @@ class TD3Group:
                              "actor_anchor (for now)")
         self.k = len(learners)
         self.device = first.device
+        self.precision = first.precision
         self.action_space = first.action_space
         self.actor = StackedMLP([learner.actor.net for learner in learners]).to(self.device)
         self.q1 = StackedMLP([learner.critic.q1 for learner in learners]).to(self.device)
@@ -102,7 +104,7 @@ class TD3Group:
     def actions(self, obs: torch.Tensor, net: StackedMLP, seeds: torch.Tensor | None = None) -> torch.Tensor:
         """`net`'s actions for `obs` ([K, batch, obs], or those of `seeds`), squashed into the action bounds as the
         single actor does."""
-        return self.centre + self.scale * torch.tanh(net(obs, seeds=seeds))
+        return self.centre + self.scale * squash(net(obs, seeds=seeds))
 
     @torch.inference_mode()
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
@@ -236,7 +238,7 @@ class TD3Group:
                 "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
                 "replay": self.replay.state_dict(),
                 "updates": torch.from_numpy(self.updates.copy()), "torch_rng": self.torch_rng.get_state(),
-                "rng": self.rng.bit_generator.state}
+                "rng": self.rng.bit_generator.state, "precision": self.precision}
 
     def load_resume_state(self, state: dict[str, Any]) -> None:
         """Continue from what `resume_state` returned."""
@@ -248,12 +250,12 @@ class TD3Group:
         self.updates[:] = state["updates"].numpy()
         self.torch_rng.set_state(state["torch_rng"])
         self.rng.bit_generator.state = state["rng"]
+        self.precision = state.get("precision", self.precision)
 
     def _precision(self) -> torch.autocast:
         """The precision of the update's matrix products (see TD3Config.precision): as a single learner's (no
         weight is cast twice in one region, so autocast's cache of casts, which a captured step forbids, is off)."""
-        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.config.precision == "bfloat16",
-                              cache_enabled=False)
+        return autocast(self.precision, self.device, cache=False)
 
     def seed_state_dict(self, k: int) -> dict[str, Any]:
         """Seed k's networks as a single `TD3` learner's `state_dict` holds them (the optimisers' moments
@@ -265,7 +267,7 @@ class TD3Group:
             "actor_target": {**self.actor_target.seed_state(k, "net."), **actor},
             "critic_target": {**self.q1_target.seed_state(k, "q1."), **self.q2_target.seed_state(k, "q2.")},
             "actor_opt": self.actor_opt.seed_state(k), "critic_opt": self.critic_opt.seed_state(k),
-            "updates": int(self.updates[k]), "torch_rng": self.torch_rng.get_state(),
+            "updates": int(self.updates[k]), "torch_rng": self.torch_rng.get_state(), "precision": self.precision,
         }
 
     def load_seed_state_dict(self, k: int, state: dict[str, Any]) -> None:

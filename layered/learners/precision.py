@@ -1,0 +1,43 @@
+"""The precision of a learner's updates: what `precision = "auto"` means on a device, and the autocast region
+that computes the updates' products in it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+# Linux's names (in /proc/cpuinfo) for CPUs that multiply bfloat16 in hardware: x86's AVX-512 BF16 and AMX, Arm's BF16
+CPU_BFLOAT16_FLAGS = frozenset({"avx512_bf16", "amx_bf16", "bf16"})
+
+
+def cpu_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> frozenset[str]:
+    """The CPU's feature flags as Linux lists them (x86 `flags`, Arm `Features`); none where it does not."""
+    try:
+        lines = cpuinfo.read_text().splitlines()
+    except OSError:
+        return frozenset()
+    return frozenset(flag for line in lines if line.startswith(("flags", "Features"))
+                     for flag in line.partition(":")[2].split())
+
+
+def native_bfloat16(device: torch.device) -> bool:
+    """Whether `device` multiplies bfloat16 in hardware (emulated bfloat16 is slower than float32)."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported(including_emulation=False)
+    return device.type == "cpu" and not CPU_BFLOAT16_FLAGS.isdisjoint(cpu_flags())
+
+
+def resolve_precision(name: str, device: torch.device) -> str:
+    """The precision a `precision` setting computes in on `device`: `auto` is bfloat16 where the device
+    multiplies it natively, float32 elsewhere."""
+    if name != "auto":
+        return name
+    return "bfloat16" if native_bfloat16(device) else "float32"
+
+
+def autocast(precision: str, device: torch.device, cache: bool = True) -> torch.autocast:
+    """The region computing the updates' products in `precision` (a resolved one); weights, optimiser
+    moments and acting stay float32. `cache=False` for a step captured as a CUDA graph, which forbids
+    autocast's cache of casts."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bfloat16", cache_enabled=cache)

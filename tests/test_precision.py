@@ -1,0 +1,84 @@
+"""The updates' precision: what `auto` resolves to, the actor's squashing kept in float32, and a resumed
+learner keeping the precision it was trained in."""
+
+import numpy as np
+import pytest
+import torch
+from gymnasium.spaces import Box
+
+from layered.learners import precision
+from layered.learners.precision import cpu_flags, resolve_precision
+from layered.learners.td3 import TD3, TD3Config, squash
+from layered.learners.td3_group import TD3Group
+from layered.outputs import OutputLayout
+
+OBS = Box(-1.0, 1.0, (3,), np.float32)
+ACT = Box(-1.0, 1.0, (2,), np.float32)
+CPU = torch.device("cpu")
+
+
+def test_cpu_flags_are_read_from_x86_and_arm_cpuinfo(tmp_path):
+    x86, arm = tmp_path / "x86", tmp_path / "arm"
+    x86.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx512f avx512_bf16\n\n"
+                   "processor\t: 1\nflags\t\t: fpu amx_bf16\n")
+    arm.write_text("processor\t: 0\nFeatures\t: fp asimd bf16 i8mm\nCPU implementer\t: 0x41\n")
+    assert cpu_flags(x86) == {"fpu", "sse2", "avx512f", "avx512_bf16", "amx_bf16"}
+    assert cpu_flags(arm) == {"fp", "asimd", "bf16", "i8mm"}
+    assert cpu_flags(tmp_path / "absent") == frozenset()
+
+
+@pytest.mark.parametrize("flags, resolved", [({"avx512f", "avx512_bf16"}, "bfloat16"), ({"amx_bf16"}, "bfloat16"),
+                                             ({"bf16"}, "bfloat16"), ({"avx512f", "avx2"}, "float32"),
+                                             (set(), "float32")])
+def test_auto_is_bfloat16_on_cpus_that_multiply_it_in_hardware(monkeypatch, flags, resolved):
+    monkeypatch.setattr(precision, "cpu_flags", lambda: frozenset(flags))
+    assert resolve_precision("auto", CPU) == resolved
+    assert resolve_precision("float32", CPU) == "float32" and resolve_precision("bfloat16", CPU) == "bfloat16"
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_auto_on_a_gpu_asks_for_native_bfloat16(monkeypatch, native):
+    asked = []
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda including_emulation: asked.append(including_emulation)
+                        or native)
+    assert resolve_precision("auto", torch.device("cuda")) == ("bfloat16" if native else "float32")
+    assert asked == [False]
+
+
+def test_the_actors_squashing_keeps_a_gradient_where_bfloat16_rounds_tanh_to_one():
+    """tanh(4) = 0.99933 is 1.0 in bfloat16, where tanh's gradient 1 - tanh² is zero; in float32 it is
+    1 - 0.99933² = 0.0013409 (passed back through the bfloat16 product: within bfloat16's 1/256)."""
+    x = torch.tensor([[4.0, -4.0]], requires_grad=True)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = squash(torch.nn.functional.linear(x, torch.eye(2)))
+        rounded = torch.tanh(torch.nn.functional.linear(x, torch.eye(2)))
+    assert y.dtype == torch.float32 and rounded.dtype == torch.bfloat16
+    assert rounded.abs().tolist() == [[1.0, 1.0]]
+    y.sum().backward()
+    assert x.grad[0].tolist() == pytest.approx([0.0013409, 0.0013409], rel=1 / 256)
+
+
+def test_a_learner_loaded_from_a_checkpoint_keeps_the_precision_it_was_trained_in(monkeypatch):
+    monkeypatch.setattr(precision, "cpu_flags", lambda: frozenset({"avx512_bf16"}))
+    trained = TD3(OBS, ACT, OutputLayout(2), TD3Config(hidden=(8,)), 0)
+    assert trained.precision == "bfloat16" and trained.state_dict()["precision"] == "bfloat16"
+    monkeypatch.setattr(precision, "cpu_flags", lambda: frozenset())
+    elsewhere = TD3(OBS, ACT, OutputLayout(2), TD3Config(hidden=(8,)), 0)
+    assert elsewhere.precision == "float32"
+    elsewhere.load_state_dict(trained.state_dict())
+    assert elsewhere.precision == "bfloat16"
+    before_auto = {k: v for k, v in trained.state_dict().items() if k != "precision"}
+    TD3(OBS, ACT, OutputLayout(2), TD3Config(hidden=(8,), precision="float32"), 0).load_state_dict(before_auto)
+
+
+def test_a_group_keeps_its_precision_across_a_resume_and_gives_it_to_its_seeds(monkeypatch):
+    def group():
+        return TD3Group([TD3(OBS, ACT, OutputLayout(2), TD3Config(hidden=(8,)), s) for s in (0, 1)])
+
+    monkeypatch.setattr(precision, "cpu_flags", lambda: frozenset({"amx_bf16"}))
+    trained = group()
+    monkeypatch.setattr(precision, "cpu_flags", lambda: frozenset())
+    resumed = group()
+    assert (trained.precision, resumed.precision) == ("bfloat16", "float32")
+    resumed.load_resume_state(trained.resume_state())
+    assert resumed.precision == "bfloat16" and resumed.seed_state_dict(1)["precision"] == "bfloat16"
