@@ -248,7 +248,7 @@ class TD3(Learner):
         for k, (weight, bias) in enumerate(self._actor_layers):
             x = nn.functional.linear(x, weight, bias)
             x = torch.relu(x) if k < len(self._actor_layers) - 1 else x
-        action = (self.actor.centre + self.actor.scale * torch.tanh(x)).cpu().numpy()
+        action = (self.actor.centre + self.actor.scale * squash(x)).cpu().numpy()
         if explore:
             noise = self.rng.normal(0.0, self.config.exploration_noise, size=action.shape) * self._half_host
             action = np.clip(action + noise, self.action_space.low, self.action_space.high)
