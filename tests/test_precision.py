@@ -58,7 +58,7 @@ def test_the_actors_squashing_keeps_a_gradient_where_bfloat16_rounds_tanh_to_one
     assert x.grad[0].tolist() == pytest.approx([0.0013409, 0.0013409], rel=1 / 256)
 
 
-def test_a_learner_loaded_from_a_checkpoint_keeps_the_precision_it_was_trained_in(monkeypatch):
+def test_a_learner_loaded_from_a_checkpoint_keeps_the_precision_auto_chose_where_it_was_trained(monkeypatch):
     monkeypatch.setattr(precision, "cpu_flags", lambda: frozenset({"avx512_bf16"}))
     trained = TD3(OBS, ACT, OutputLayout(2), TD3Config(hidden=(8,)), 0)
     assert trained.precision == "bfloat16" and trained.state_dict()["precision"] == "bfloat16"
@@ -67,8 +67,13 @@ def test_a_learner_loaded_from_a_checkpoint_keeps_the_precision_it_was_trained_i
     assert elsewhere.precision == "float32"
     elsewhere.load_state_dict(trained.state_dict())
     assert elsewhere.precision == "bfloat16"
-    before_auto = {k: v for k, v in trained.state_dict().items() if k != "precision"}
-    TD3(OBS, ACT, OutputLayout(2), TD3Config(hidden=(8,), precision="float32"), 0).load_state_dict(before_auto)
+    chosen = TD3(OBS, ACT, OutputLayout(2), TD3Config(hidden=(8,), precision="float32"), 0)
+    chosen.load_state_dict(trained.state_dict())
+    assert chosen.precision == "float32"  # a precision the recipe names is the one used
+    older = {k: v for k, v in trained.state_dict().items() if k != "precision"}
+    elsewhere = TD3(OBS, ACT, OutputLayout(2), TD3Config(hidden=(8,)), 0)
+    elsewhere.load_state_dict(older)
+    assert elsewhere.precision == "float32"
 
 
 def test_a_group_keeps_its_precision_across_a_resume_and_gives_it_to_its_seeds(monkeypatch):

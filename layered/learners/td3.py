@@ -65,7 +65,8 @@ class TD3Config(LearnerConfig):
     stay float32), `float32`, or `auto`: bfloat16 where the device multiplies it in hardware (GPUs
     that do; CPUs with AVX-512 BF16, AMX or Arm BF16), float32 elsewhere. bfloat16 learns as float32
     does on the tasks checked in docs/experiments.md, at about twice the update rate on such a CPU.
-    A checkpoint records the precision its learner computed in, and a resumed run keeps it."""
+    A checkpoint records the precision its learner computed in; with `auto`, a run resumed from it
+    (or started from its weights) keeps that precision wherever it runs."""
     compile: Literal["off", "inductor", "cudagraphs"] = "off"
     """Compile the critic and actor steps with torch.compile: `inductor` (its default mode), or
     `cudagraphs` (mode reduce-overhead, which also replays the steps as CUDA graphs; GPU only).
@@ -350,4 +351,5 @@ class TD3(Learner):
         load_adam(self.critic_opt, state["critic_opt"], self.config.lr)
         self.updates = int(state["updates"])
         self.torch_rng.set_state(state["torch_rng"])
-        self.precision = state.get("precision", self.precision)  # (checkpoints before `auto` lack it)
+        if self.config.precision == "auto":  # what `auto` chose where the weights were trained (older files lack it)
+            self.precision = state.get("precision", self.precision)

@@ -250,7 +250,8 @@ class TD3Group:
         self.updates[:] = state["updates"].numpy()
         self.torch_rng.set_state(state["torch_rng"])
         self.rng.bit_generator.state = state["rng"]
-        self.precision = state.get("precision", self.precision)
+        if self.config.precision == "auto":  # what `auto` chose where the group started
+            self.precision = state.get("precision", self.precision)
 
     def _precision(self) -> torch.autocast:
         """The precision of the update's matrix products (see TD3Config.precision): as a single learner's (no
