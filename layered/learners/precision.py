@@ -3,7 +3,9 @@ that computes the updates' products in it."""
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -11,6 +13,7 @@ import torch
 CPU_BFLOAT16_FLAGS = frozenset({"avx512_bf16", "amx_bf16", "bf16"})
 
 
+@functools.cache  # read once per process, not once per learner (a group of K seeds builds K of each layer's)
 def cpu_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> frozenset[str]:
     """The CPU's feature flags as Linux lists them (x86 `flags`, Arm `Features`); none where it does not."""
     try:
@@ -34,6 +37,12 @@ def resolve_precision(name: str, device: torch.device) -> str:
     if name != "auto":
         return name
     return "bfloat16" if native_bfloat16(device) else "float32"
+
+
+def loaded_precision(setting: str, current: str, state: dict[str, Any]) -> str:
+    """The precision to go on in after loading a checkpoint's `state`: with `auto`, the one it was trained in
+    (so that a run resumes exactly wherever it resumes; older checkpoints lack it), else the one named."""
+    return state.get("precision", current) if setting == "auto" else current
 
 
 def autocast(precision: str, device: torch.device, cache: bool = True) -> torch.autocast:

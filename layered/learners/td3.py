@@ -16,7 +16,7 @@ from torch.func import functional_call
 
 from layered.buffer import Batch, ReplayBuffer, Transition
 from layered.learners.base import LEARNERS, Flag, Learner, LearnerConfig, Losses, Whole
-from layered.learners.precision import autocast, resolve_precision
+from layered.learners.precision import autocast, loaded_precision, resolve_precision
 from layered.outputs import OutputLayout
 
 
@@ -351,5 +351,4 @@ class TD3(Learner):
         load_adam(self.critic_opt, state["critic_opt"], self.config.lr)
         self.updates = int(state["updates"])
         self.torch_rng.set_state(state["torch_rng"])
-        if self.config.precision == "auto":  # what `auto` chose where the weights were trained (older files lack it)
-            self.precision = state.get("precision", self.precision)
+        self.precision = loaded_precision(self.config.precision, self.precision, state)

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from layered.learners.graphed import GraphedStep
-from layered.learners.precision import autocast
+from layered.learners.precision import autocast, loaded_precision
 from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, follow, masked
 from layered.learners.td3 import TD3, TD3Config, squash
 
@@ -250,8 +250,7 @@ class TD3Group:
         self.updates[:] = state["updates"].numpy()
         self.torch_rng.set_state(state["torch_rng"])
         self.rng.bit_generator.state = state["rng"]
-        if self.config.precision == "auto":  # what `auto` chose where the group started
-            self.precision = state.get("precision", self.precision)
+        self.precision = loaded_precision(self.config.precision, self.precision, state)
 
     def _precision(self) -> torch.autocast:
         """The precision of the update's matrix products (see TD3Config.precision): as a single learner's (no
