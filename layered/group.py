@@ -3,8 +3,10 @@
 Every base step, the K stacks step together: one `Rules` over K rows decides for every seed at once
 (layers due at different steps after a reset, a gate committing in some seeds: masks over the rows),
 each layer's learners of the K seeds act as one stacked network (`TD3Group`, or a `ChoiceLearnerGroup`
-for the gate's and TempoRL's), the K environments step, and each learning layer updates the seeds it
-decided in with one masked, batched update. What the single loop (`layered.trainer`) does per episode
+for the gate's and TempoRL's), and each learning layer updates the seeds it decided in with one masked,
+batched update, queued while the K environments step (`layered.env_workers` steps them in processes of
+their own): an update draws from the transitions stored before the step, so an episode's last transition
+joins the next step's minibatches, not its own step's. What the single loop (`layered.trainer`) does per episode
 end, evaluation and phase end is done per seed, and each seed writes its own run directory in the
 single run's format, so `eval`, `report` and `export` take any one seed. The numbers are a seed's own
 but not bit-identical to its single run (the group draws its noise and minibatches from generators of
@@ -27,7 +29,8 @@ import tomli_w
 import torch
 
 from layered.checkpoint import save_checkpoint
-from layered.env_group import EnvGroup
+from layered.env_group import Envs
+from layered.env_workers import open_envs
 from layered.envs import make_env, snapshot_env
 from layered.events import EventLog
 from layered.group_eval import all_rows, evaluate_group
@@ -240,9 +243,9 @@ class Group:
             for seed, row in zip(self.seeds, rows, strict=True):
                 seed.state.finish_phase(row)
 
-    def _stacks(self, phase: Phase, evaluation: bool) -> tuple[Stack, Rules, EnvGroup]:
+    def _stacks(self, phase: Phase, evaluation: bool) -> tuple[Stack, Rules, Envs]:
         """The phase's stack (for its layers' spaces and discounts), its rules over the K rows, and K envs."""
-        envs = EnvGroup(self.recipe.env.id, self.rows)
+        envs = open_envs(self.recipe.env.id, self.rows, self.recipe.env.workers)
         stack = Stack(self.recipe, envs.observation_space, envs.action_space, active=list(phase.active),
                       evaluation=evaluation)
         rules = Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, self.rows)
@@ -292,7 +295,10 @@ class Group:
                         pending[i].output[rows] = rules.decided[i][rows]
                         _check_finite(rules.decided[i][rows], "action", f"layer {self.names[i]!r}", p, loop.step)
                 composition = rules.compose()
-                reward, terminated, truncated = envs.step(composition.action, every)
+                envs.step_async(composition.action, every)
+                for i in learn:  # queued while the environments step (on a GPU, or with env.workers)
+                    self._update(self.names[i], decided[i] & (decisions[i] > warmups[i]), losses)
+                reward, terminated, truncated = envs.step_wait()
                 _check_finite(envs.obs, "observation", "the environment", p, loop.step)
                 shares = rules.layer_rewards(reward, composition)
                 rules.tick()
@@ -311,8 +317,6 @@ class Group:
                     self._log_episodes(ended, p, loop)
                     envs.reset(ended, [None] * self.rows)
                     rules.reset(ended)
-                for i in learn:
-                    self._update(self.names[i], decided[i] & (decisions[i] > warmups[i]), losses)
                 self._due(phase, loop, {self.names[i]: d for i, d in decisions.items()}, losses, rules, envs,
                           evaluator, bar)
             if self.seeds[0].state.curve[-1][0] != loop.step:
@@ -324,8 +328,8 @@ class Group:
         return [PhaseResult(p, phase, loop.step, seed.state.curve[-1][1], curve_auc(self.recipe, seed.state.curve))
                 for seed in self.seeds]
 
-    def _begin(self, phase: Phase, saved: GroupCheckpoint | None, rules: Rules, envs: EnvGroup,
-               evaluator: tuple[Stack, Rules, EnvGroup], losses: dict[str, list[GroupLosses]], bar: Progress) -> None:
+    def _begin(self, phase: Phase, saved: GroupCheckpoint | None, rules: Rules, envs: Envs,
+               evaluator: tuple[Stack, Rules, Envs], losses: dict[str, list[GroupLosses]], bar: Progress) -> None:
         """Start the phase (its evaluation at step 0 and every row's first, seeded episode), or put the
         rules' rows and the environments where `saved` found them."""
         if saved is not None:
@@ -338,8 +342,8 @@ class Group:
         rules.reset()
 
     def _due(self, phase: Phase, loop: PhaseLoop, decisions: dict[str, np.ndarray],
-             losses: dict[str, list[GroupLosses]], rules: Rules, envs: EnvGroup,
-             evaluator: tuple[Stack, Rules, EnvGroup], bar: Progress) -> None:
+             losses: dict[str, list[GroupLosses]], rules: Rules, envs: Envs,
+             evaluator: tuple[Stack, Rules, Envs], bar: Progress) -> None:
         """What is due after a step: an evaluation, a checkpoint, and the stop a signal asked for."""
         state = self.seeds[0].state
         if loop.step >= state.next_eval:
@@ -352,7 +356,7 @@ class Group:
             raise Stopped(self.stop.requested, state.phase, loop.step, self.directory)
 
     def _checkpoint(self, loop: PhaseLoop, decisions: dict[str, np.ndarray], losses: dict[str, list[GroupLosses]],
-                    rules: Rules, envs: EnvGroup) -> None:
+                    rules: Rules, envs: Envs) -> None:
         """Save where the group stands, at any step: each seed's loop state (its losses read back first and
         its logs' sizes), the phase's open transitions, the rules' rows, the environments and the learners."""
         _read_back(losses, self.seeds, loop.step)
@@ -395,7 +399,7 @@ class Group:
         self.learners[self.names[i]].observe(mine.seen, mine.output, mine.reward, next_seen, terminated, discount,
                                              rows, mine.path)
 
-    def _evaluate(self, phase: Phase, evaluator: tuple[Stack, Rules, EnvGroup], losses: dict[str, list[GroupLosses]],
+    def _evaluate(self, phase: Phase, evaluator: tuple[Stack, Rules, Envs], losses: dict[str, list[GroupLosses]],
                   step: int, bar: Progress) -> None:
         """Evaluate every seed's present layers now and log its row, with its mean losses since the last."""
         results = self._evaluations(phase, evaluator, self.recipe.eval.episodes, self.recipe.eval.seed_offset)
@@ -414,7 +418,7 @@ class Group:
         returns = np.array([r.return_mean for r in results])
         bar.evaluated(step, float(returns.mean()), float(returns.std()))
 
-    def _evaluations(self, phase: Phase, evaluator: tuple[Stack, Rules, EnvGroup], episodes: int,
+    def _evaluations(self, phase: Phase, evaluator: tuple[Stack, Rules, Envs], episodes: int,
                      offset: int) -> list[Any]:
         """Each seed's evaluation of its present layers over `episodes` episodes, seeded at its seed + `offset`."""
         stack, rules, envs = evaluator

@@ -7,7 +7,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from layered.env_group import EnvGroup
+from layered.env_group import Envs
 from layered.metrics import EpisodeMeasures, Evaluation, StepRecord, measure_episode, summarise
 from layered.rules import Rules
 
@@ -23,7 +23,7 @@ def all_rows(seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
     return full
 
 
-def evaluate_group(rules: Rules, envs: EnvGroup, policy: GroupPolicy, macs: dict[str, int], episodes: int,
+def evaluate_group(rules: Rules, envs: Envs, policy: GroupPolicy, macs: dict[str, int], episodes: int,
                    seeds: Sequence[int]) -> list[Evaluation]:
     """Each row's mean measures over `episodes` episodes, its environment seeded once with `seeds[k]`
     as `evaluate` seeds one; rows that have played theirs wait for the others."""

@@ -35,6 +35,17 @@ class EnvConfig(Section):
     """Environment id, `family:name`; a bare name is a Gymnasium id, e.g. `Pendulum-v1`."""
     return_range: tuple[float, float] | None = None
     """(worst, best) return that normalises the AUC; defaults to the environment registry's."""
+    workers: Whole | Literal["auto"] = "auto"
+    """Processes that step a group's environments (`layered train --seeds`), several each: 0 steps them
+    in the training process; `auto` takes half the cores on machines with 4 or more, else 0. Where they
+    step changes no number."""
+
+    @field_validator("workers", mode="before")
+    @classmethod
+    def _count_or_auto(cls, value: Any) -> Any:
+        if value != "auto" and not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
+            raise ValueError(f"give a number of processes, 0 or more, or 'auto' (got {value!r})")
+        return value
 
     @field_validator("return_range")
     @classmethod

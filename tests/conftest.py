@@ -34,6 +34,28 @@ def stack_recipe(periods: list[int], kinds: list[str] | str = "residual-clip", e
     return load_recipe({"env": {"id": env}, "layers": layers, **extra})
 
 
+@pytest.fixture(autouse=True)
+def registries_as_shipped():
+    """Each test starts from the shipped registries: a plugin a test loads (and its module) is gone after it,
+    so that no test sees another's learners, combiners, orders or families (the recipe reference lists them)."""
+    import sys
+
+    from layered.combiners import COMBINERS
+    from layered.envs import FAMILIES
+    from layered.learners import LEARNERS
+    from layered.orders import ORDERS
+
+    registries = (COMBINERS, FAMILIES, LEARNERS, ORDERS)
+    before = [dict(registry._entries) for registry in registries]
+    modules = set(sys.modules)
+    yield
+    for registry, entries in zip(registries, before):
+        registry._entries = entries
+    for name in set(sys.modules) - modules:
+        if name.startswith("layered_plugin_"):
+            del sys.modules[name]
+
+
 @pytest.fixture
 def tiny() -> list[str]:
     """Overrides that make training a few hundred steps cheap."""

@@ -69,6 +69,20 @@ def test_a_group_stopped_mid_episode_resumes_to_the_same_files(recipe, overrides
     assert_same_group(tmp_path / "whole", out, (0, 3))
 
 
+def test_a_group_stepping_its_environments_in_workers_writes_the_files_of_one_stepping_them_here(tmp_path,
+                                                                                                  monkeypatch):
+    command = ["train", str(ROOT / "recipes/inverted-double-pendulum/tla-realtime.toml"), "--seeds", "0,3,4",
+               "--steps", "300", *TINY]
+    assert main([*command, "env.workers=0", "--out", str(tmp_path / "here")]) == 0
+    out = tmp_path / "workers"
+    stop_at(monkeypatch, [(0, 101), (1, 151)])  # snapshots taken in the workers, restored in new ones
+    assert main([*command, "env.workers=2", "--out", str(out)]) == 130
+    assert main(["resume", str(out)]) == 130
+    monkeypatch.undo()
+    assert main(["resume", str(out)]) == 0
+    assert_same_group(tmp_path / "here", out, (0, 3, 4))
+
+
 def test_a_stopped_group_is_refused_a_new_start_and_other_steps_and_force_starts_over(tmp_path, monkeypatch, capsys):
     command = ["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", "2", "--steps", "200", *TINY,
                "--out", str(tmp_path / "g")]

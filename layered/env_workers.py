@@ -1,0 +1,246 @@
+"""A group's K environments stepped in worker processes, several rows per worker, through shared memory.
+
+Each worker owns a contiguous slice of the rows, made and stepped by the same functions as in this
+process (`layered.env_group`), so a group's numbers do not depend on where its rows step. Actions, row
+masks, observations, rewards and flags pass through arrays in shared memory; a pipe per worker carries
+one short command per step, and snapshots at checkpoints. The workers step while the caller does other
+work between `step_async` and `step_wait` (a group queues its update there).
+
+Workers ignore SIGINT (a Ctrl-C at the terminal reaches the whole process group; the training process
+decides what it means) and end when their pipe closes, so none outlives the process that started it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import multiprocessing
+import os
+import pickle
+import signal
+import traceback
+from collections.abc import Sequence
+from multiprocessing.connection import Connection
+from typing import Any, Literal
+
+import numpy as np
+
+from layered.env_group import EnvGroup, Envs, StepResult, reset_rows, spaces, step_rows
+from layered.envs import make_env, restore_env, snapshot_env
+
+WorkersSetting = int | Literal["auto"]
+
+
+class EnvWorkerError(RuntimeError):
+    """An environment failed in a worker process (its traceback is in the message), or a worker died."""
+
+
+def usable_cores() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def worker_count(setting: WorkersSetting, rows: int, cores: int | None = None) -> int:
+    """How many worker processes step `rows` environments: `setting` itself (at most one per row), or for
+    `auto` half the usable cores where there are 4 or more (the rest stay with the learners), and none,
+    the rows stepping in this process, on smaller machines or for a single row."""
+    if setting != "auto":
+        return min(setting, rows)
+    cores = usable_cores() if cores is None else cores
+    return 0 if cores < 4 or rows < 2 else min(rows, cores // 2)
+
+
+def open_envs(env_id: str, rows: int, workers: WorkersSetting) -> Envs:
+    """`rows` environments of `env_id`, in `worker_count(workers, rows)` worker processes (none: in this one)."""
+    count = worker_count(workers, rows)
+    return EnvWorkers(env_id, rows, count) if count else EnvGroup(env_id, rows)
+
+
+def _context() -> Any:
+    """Where workers come from: forked from a clean server process that has imported the environments
+    (fast, and nothing of this process's torch state is forked), or fresh interpreters where there is none."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([__name__])
+    return context
+
+
+class _Shared:
+    """The arrays one step passes between the group and its workers, in shared memory."""
+
+    def __init__(self, rows: int, obs_dim: int, action_dim: int, context: Any) -> None:
+        self.shape = (rows, obs_dim, action_dim)
+        self.raw = {"obs": context.RawArray(ctypes.c_float, rows * obs_dim),
+                    "actions": context.RawArray(ctypes.c_float, rows * action_dim),
+                    "rows": context.RawArray(ctypes.c_bool, rows),
+                    "reward": context.RawArray(ctypes.c_double, rows),
+                    "terminated": context.RawArray(ctypes.c_bool, rows),
+                    "truncated": context.RawArray(ctypes.c_bool, rows)}
+        self.views()
+
+    def views(self) -> None:
+        """The arrays as numpy views (again in a worker, which receives the raw arrays pickled)."""
+        rows, obs_dim, action_dim = self.shape
+        raw = self.raw
+        self.obs = np.frombuffer(raw["obs"], np.float32).reshape(rows, obs_dim)
+        self.actions = np.frombuffer(raw["actions"], np.float32).reshape(rows, action_dim)
+        self.rows = np.frombuffer(raw["rows"], bool)
+        self.result: StepResult = (np.frombuffer(raw["reward"], np.float64), np.frombuffer(raw["terminated"], bool),
+                                   np.frombuffer(raw["truncated"], bool))
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {"shape": self.shape, "raw": self.raw}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.shape, self.raw = state["shape"], state["raw"]
+        self.views()
+
+
+class EnvWorkers:
+    """K environments stepped in `workers` processes, rows split into contiguous slices (`Envs`)."""
+
+    def __init__(self, env_id: str, rows: int, workers: int) -> None:
+        self.env_id = env_id
+        probe = make_env(env_id)  # the spaces, read here as `EnvGroup` reads them
+        self.observation_space, self.action_space = spaces(probe)
+        probe.close()
+        context = _context()
+        self._shared = _Shared(rows, self.observation_space.shape[0], self.action_space.shape[0], context)
+        self.obs = self._shared.obs
+        bounds = np.linspace(0, rows, workers + 1).round().astype(int).tolist()
+        self._slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+        self._pipes: list[Connection] = []
+        self._processes = []
+        self._asked: list[int] = []
+        try:
+            for part in self._slices:
+                mine, theirs = context.Pipe()
+                process = context.Process(target=_serve, args=(theirs, env_id, part, self._shared), daemon=True,
+                                          name=f"layered-envs-{part.start}-{part.stop - 1}")
+                process.start()
+                theirs.close()
+                self._pipes.append(mine)
+                self._processes.append(process)
+            self._collect(range(len(self._slices)))  # each worker has made its environments
+        except BaseException:
+            self.close()
+            raise
+
+    def reset(self, rows: np.ndarray, seeds: Sequence[int | None]) -> None:
+        self._shared.rows[:] = rows
+        self._ask("reset", lambda part: list(seeds[part]), rows)
+        self._collect(self._asked)
+
+    def step_async(self, actions: np.ndarray, rows: np.ndarray) -> None:
+        assert not self._asked, "a step is under way: collect it with step_wait first"
+        self._shared.actions[:] = actions
+        self._shared.rows[:] = rows
+        for array in self._shared.result:
+            array[:] = 0  # the rows not stepped: zero and False
+        self._ask("step", lambda part: None, rows)
+
+    def step_wait(self) -> StepResult:
+        self._collect(self._asked)
+        return tuple(part.copy() for part in self._shared.result)  # type: ignore[return-value]
+
+    def step(self, actions: np.ndarray, rows: np.ndarray) -> StepResult:
+        self.step_async(actions, rows)
+        return self.step_wait()
+
+    def snapshots(self) -> list[dict[str, Any]]:
+        self._ask("snapshot", lambda part: None)
+        return [snapshot for part in self._collect(self._asked) for snapshot in part]
+
+    def restore(self, snapshots: Sequence[dict[str, Any]], obs: np.ndarray) -> None:
+        if len(snapshots) != len(self.obs):
+            raise ValueError(f"{len(snapshots)} snapshots for {len(self.obs)} environments")
+        self._ask("restore", lambda part: list(snapshots[part]))
+        self._collect(self._asked)
+        self.obs[:] = obs
+
+    def close(self) -> None:
+        for pipe in self._pipes:
+            try:
+                pipe.send_bytes(pickle.dumps(("close", None)))
+            except OSError:
+                pass  # the worker is gone already
+        for process in self._processes:
+            process.join(timeout=5)
+            if process.is_alive():
+                process.terminate()
+                process.join()
+        for pipe in self._pipes:
+            pipe.close()
+        self._pipes, self._processes, self._asked = [], [], []
+
+    def _ask(self, command: str, argument: Any, rows: np.ndarray | None = None) -> None:
+        """Send `command` with `argument(slice)` to every worker (with `rows`, those holding a row of the mask)."""
+        self._asked = [w for w, part in enumerate(self._slices) if rows is None or rows[part].any()]
+        for w in self._asked:
+            try:
+                self._pipes[w].send_bytes(pickle.dumps((command, argument(self._slices[w]))))
+            except OSError:
+                raise EnvWorkerError(f"{self.env_id}: {self._lost(w)}") from None
+
+    def _collect(self, asked: Sequence[int]) -> list[Any]:
+        """The answers of the `asked` workers, in their order; an EnvWorkerError for the first that failed."""
+        answers, failure = [], None
+        for w in list(asked):
+            try:
+                ok, answer = pickle.loads(self._pipes[w].recv_bytes())
+            except (EOFError, OSError):
+                ok, answer = False, self._lost(w)
+            if not ok and failure is None:
+                failure = answer
+            answers.append(answer)
+        self._asked = []
+        if failure is not None:
+            raise EnvWorkerError(f"{self.env_id}: {failure}")
+        return answers
+
+
+    def _lost(self, w: int) -> str:
+        first, last = self._slices[w].start, self._slices[w].stop - 1
+        return f"the worker process stepping {f'rows {first}-{last}' if last > first else f'row {first}'} ended unexpectedly"
+
+
+def _serve(pipe: Connection, env_id: str, part: slice, shared: _Shared) -> None:
+    """A worker: make the environments of rows `part` and carry out the group's commands on them."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    envs: list[Any] = []
+    try:
+        envs = [make_env(env_id) for _ in range(part.start, part.stop)]
+        pipe.send_bytes(pickle.dumps((True, None)))
+        while True:
+            command, argument = pickle.loads(pipe.recv_bytes())
+            if command == "close":
+                return
+            try:
+                pipe.send_bytes(pickle.dumps((True, _carry_out(command, argument, envs, env_id, part, shared))))
+            except Exception:  # noqa: BLE001  (the group raises it, with this traceback)
+                pipe.send_bytes(pickle.dumps((False, traceback.format_exc())))
+    except (EOFError, OSError):
+        return  # the group's process is gone
+    except Exception:  # noqa: BLE001  (making the environments failed)
+        pipe.send_bytes(pickle.dumps((False, traceback.format_exc())))
+    finally:
+        for env in envs:
+            env.close()
+
+
+def _carry_out(command: str, argument: Any, envs: list[Any], env_id: str, part: slice, shared: _Shared) -> Any:
+    """One command on the worker's rows; what it answers."""
+    if command == "step":
+        step_rows(envs, shared.actions[part], shared.rows[part], shared.obs[part],
+                  tuple(array[part] for array in shared.result))  # type: ignore[arg-type]
+        return None
+    if command == "reset":
+        reset_rows(envs, shared.rows[part], argument, shared.obs[part])
+        return None
+    if command == "snapshot":
+        return [snapshot_env(env_id, env) for env in envs]
+    if command == "restore":
+        for env, snapshot in zip(envs, argument, strict=True):
+            restore_env(env_id, env, snapshot)
+        return None
+    raise ValueError(f"unknown command {command!r}")

@@ -1,0 +1,128 @@
+"""A group's environments stepped in worker processes are the environments stepped here: the same
+observations, rewards and flags row by row, the same snapshots; a worker's failure is the group's error."""
+
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from layered.env_group import EnvGroup
+from layered.env_workers import EnvWorkerError, EnvWorkers, open_envs, worker_count
+
+ENV = "Hopper-v5"  # episodes of different lengths, and a MuJoCo state in every snapshot
+
+
+@pytest.mark.parametrize("setting, rows, cores, expected", [
+    ("auto", 8, 2, 0),  # two cores: the learners' (the rows step in the training process)
+    ("auto", 8, 4, 2),  # half the cores
+    ("auto", 32, 16, 8),
+    ("auto", 4, 16, 4),  # never more workers than rows
+    ("auto", 1, 16, 0),  # one row: nothing to share out
+    (3, 2, 2, 2),  # a number is taken as given, at most one per row
+    (0, 8, 16, 0),
+])
+def test_how_many_workers_step_the_rows(setting, rows, cores, expected):
+    assert worker_count(setting, rows, cores) == expected
+
+
+def test_open_envs_steps_here_without_workers_and_in_processes_with_them():
+    here = open_envs("Pendulum-v1", 3, 0)
+    there = open_envs("Pendulum-v1", 3, 2)
+    try:
+        assert isinstance(here, EnvGroup) and isinstance(there, EnvWorkers)
+        assert there.observation_space == here.observation_space and there.action_space == here.action_space
+    finally:
+        here.close()
+        there.close()
+
+
+def play(envs, steps: int, seed: int, snapshot_at: int | None = None):
+    """Random actions in random subsets of the rows, ended rows reset; what every step gave, and the
+    snapshots and observations at `snapshot_at`."""
+    rng = np.random.default_rng(seed)
+    rows = len(envs.obs)
+    envs.reset(np.ones(rows, bool), [10 + k for k in range(rows)])
+    trace, saved = [envs.obs.copy()], None
+    for t in range(steps):
+        if t == snapshot_at:
+            saved = (envs.snapshots(), envs.obs.copy())
+        actions = rng.uniform(-1, 1, (rows, 3)).astype(np.float32)
+        mask = rng.random(rows) < 0.7
+        reward, terminated, truncated = envs.step(actions, mask)
+        assert not reward[~mask].any() and not terminated[~mask].any() and not truncated[~mask].any()
+        trace += [reward.copy(), terminated.copy(), truncated.copy(), envs.obs.copy()]
+        envs.reset(terminated | truncated, [None] * rows)
+        trace.append(envs.obs.copy())
+    return trace, saved
+
+
+def assert_same_trace(a, b):
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert x.dtype == y.dtype and np.array_equal(x, y)
+
+
+def test_rows_stepped_in_workers_give_what_they_give_here_and_their_snapshots_continue_them():
+    here, there = EnvGroup(ENV, 5), EnvWorkers(ENV, 5, 2)
+    try:
+        expected, saved_here = play(here, 120, seed=1, snapshot_at=60)
+        got, saved_there = play(there, 120, seed=1, snapshot_at=60)
+        assert_same_trace(expected, got)
+        assert any(t.any() for t in expected[2::5]), "some episodes ended (Hopper falls under random actions)"
+        assert np.array_equal(saved_here[1], saved_there[1])
+    finally:
+        there.close()
+    later = EnvWorkers(ENV, 5, 3)  # other slices: a snapshot belongs to its row, not to its worker
+    try:
+        later.restore(*saved_there)
+        here.restore(*saved_here)
+        rng = np.random.default_rng(2)
+        for _ in range(30):
+            actions, mask = rng.uniform(-1, 1, (5, 3)).astype(np.float32), rng.random(5) < 0.8
+            assert_same_trace(here.step(actions, mask), later.step(actions, mask))
+            assert np.array_equal(here.obs, later.obs)
+    finally:
+        later.close()
+        here.close()
+
+
+def test_a_step_can_be_collected_after_other_work():
+    envs = EnvWorkers("Pendulum-v1", 4, 2)
+    try:
+        envs.reset(np.ones(4, bool), [0, 1, 2, 3])
+        before = envs.obs.copy()
+        envs.step_async(np.zeros((4, 1), np.float32), np.array([True, False, True, False]))
+        reward, _, _ = envs.step_wait()
+        assert np.array_equal(envs.obs[[1, 3]], before[[1, 3]]) and not np.array_equal(envs.obs[0], before[0])
+        assert reward[0] < 0 and reward[1] == 0
+    finally:
+        envs.close()
+
+
+def test_a_failure_in_a_worker_is_raised_with_its_traceback_and_a_dead_worker_is_named():
+    envs = EnvWorkers(ENV, 3, 2)
+    try:
+        with pytest.raises(EnvWorkerError, match="Traceback"):
+            envs.restore([{}, {}, {}], envs.obs.copy())  # no state in these snapshots
+        envs._processes[1].kill()
+        envs._processes[1].join()
+        with pytest.raises(EnvWorkerError, match="stepping row 2 ended unexpectedly"):
+            envs.step(np.zeros((3, 3), np.float32), np.ones(3, bool))
+    finally:
+        envs.close()
+    assert not any(p.is_alive() for p in envs._processes)
+
+
+def test_workers_ignore_a_ctrl_c_at_the_terminal_and_are_gone_after_close():
+    envs = EnvWorkers("Pendulum-v1", 2, 2)
+    processes = list(envs._processes)
+    try:
+        envs.reset(np.ones(2, bool), [0, 1])
+        for process in processes:
+            os.kill(process.pid, signal.SIGINT)  # what a Ctrl-C sends every process of the terminal's group
+        envs.step(np.zeros((2, 1), np.float32), np.ones(2, bool))
+        assert all(process.is_alive() for process in processes)
+    finally:
+        envs.close()
+    assert not any(process.is_alive() for process in processes)
