@@ -11,13 +11,15 @@ Pendulum-v1; `--hidden`, default 400-300; batch 256):
   where it can); per-seed steps/s are read from each run's train.log (the rate between
   evaluations, the first interval left out), and their sum is the aggregate.
 * **group**: `layered train --seeds K --device cuda`, K seeds as one computation in one process, for
-  each K of `--groups`, its update eager and captured as CUDA graphs (`--group-modes`), on the
+  each K of `--groups`, its update eager and captured as CUDA graphs (`--group-modes`), its
+  environments stepped in the training process or in worker processes (`--group-workers`), on the
   benchmark's recipe or on `--group-recipe` (with `--set` settings); the rate of its progress
   lines times K is the aggregate.
 
     python benchmarks/gpu.py                                                  # all three, on the GPU
     python benchmarks/gpu.py --env HalfCheetah-v5 --hidden 256,256 --parts modes,group --groups 1
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 1,4,16,32,64
+    python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --group-workers 0,auto
     python benchmarks/gpu.py --parts group --groups 32 --group-recipe recipes/hopper/tla-realtime.toml \
         --set layers.slow.warmup=500 --set layers.fast.warmup=1000
     python benchmarks/gpu.py --device cpu --modes off,inductor --jobs 1,2 --groups 1,2 --group-modes off --steps 1500
@@ -105,8 +107,9 @@ def sweep(device: str, jobs: int, env: str, hidden: str, steps: int, warmup: int
 
 
 def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, steps: int, warmup: int, mode: str,
-          settings: list[str]) -> dict[str, Any]:
-    """`layered train --seeds` with `seeds` seeds as one group, its update as `mode` (learner.compile), of
+          workers: str, settings: list[str]) -> dict[str, Any]:
+    """`layered train --seeds` with `seeds` seeds as one group, its update as `mode` (learner.compile), its
+    environments stepped by `workers` processes (env.workers), of
     `recipe` (a file, with `settings`) or the benchmark's TD3 recipe; its steps/s (per seed, every seed
     stepping at once) from the progress lines, the first interval left out, times the seeds."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -116,7 +119,8 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
         start = time.perf_counter()
         proc = subprocess.run([sys.executable, "-m", "layered.cli", "train", recipe, "--seeds", str(seeds),
                                "--steps", str(steps), "--device", device, "--out", str(Path(tmp) / "runs"),
-                               f"learner.compile={mode}", *settings], capture_output=True, text=True)
+                               f"learner.compile={mode}", f"env.workers={workers}", *settings],
+                              capture_output=True, text=True)
         wall = time.perf_counter() - start
         if proc.returncode != 0:
             raise SystemExit(f"group of {seeds} failed: {proc.stderr.strip().splitlines()[-1]}")
@@ -141,6 +145,8 @@ def main() -> None:
                         help="a setting of the group part's recipe file (repeatable, e.g. layers.slow.warmup=500)")
     parser.add_argument("--group-modes", default="off,cudagraphs",
                         help="learner.compile values of the group part: eager, and the update as CUDA graphs")
+    parser.add_argument("--group-workers", default="auto",
+                        help="env.workers values of the group part (0,auto: in the training process, and in workers)")
     parser.add_argument("--parts", default="modes,sweep,group", help="which parts to run (default all three)")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -176,13 +182,15 @@ def main() -> None:
                       f"{row['wall_seconds']:.1f} |", flush=True)
     if "group" in args.parts:
         print(f"\n{args.group_recipe or args.env}, seeds as one group (layered train --seeds K)\n\n"
-              "| K | learner.compile | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|---|")
+              "| K | learner.compile | env.workers | aggregate steps/s | per seed steps/s | wall s |\n"
+              "|---|---|---|---|---|---|")
         for k in map(int, args.groups.split(",")):
             for mode in args.group_modes.split(","):
-                row = group(args.device, k, args.group_recipe, args.env, args.hidden, args.steps, args.warmup, mode,
-                            args.set)
-                print(f"| {k} | {mode} | {row['aggregate']:.0f} | {row['per_seed']:.0f} | {row['wall_seconds']:.1f} |",
-                      flush=True)
+                for workers in args.group_workers.split(","):
+                    row = group(args.device, k, args.group_recipe, args.env, args.hidden, args.steps, args.warmup,
+                                mode, workers, args.set)
+                    print(f"| {k} | {mode} | {workers} | {row['aggregate']:.0f} | {row['per_seed']:.0f} | "
+                          f"{row['wall_seconds']:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -9,8 +9,9 @@ the losses' read-back from the device, and the rest of the loop (the stack rules
 Each part is timed by wrapping the loop's own methods (nothing in `layered` is changed); a call made
 inside another timed part counts to the outer one (an evaluation's steps are the evaluation's), but
 for the read-back of the losses, always its own part. The environments' steps are the time spent
-waiting for them after the update is queued (with `--set env.workers=N` they step meanwhile). On a GPU, acting includes copying the actions
-to the host and the read-back waits for the updates queued since the last one, so those two parts
+waiting for them after the update is queued (with `--set env.workers=N` they step meanwhile). On a
+GPU, acting includes copying the actions to the host and the read-back waits for the updates queued
+since the last one, so those two parts
 are where host transfers and waiting show.
 """
 
@@ -83,9 +84,11 @@ def main() -> None:
     from layered.trainer import phases_of
 
     clock = Clock(apart="losses read back")
-    for owner, name, part in ((EnvGroup, "step_wait", "environments: steps"), (EnvWorkers, "step_wait",
-                               "environments: steps"), (EnvGroup, "reset", "environments: resets"),
-                              (EnvWorkers, "reset", "environments: resets"), (TD3Group, "act", "acting"), (ChoiceLearnerGroup, "act", "acting"),
+    for owner, name, part in ((EnvGroup, "step_wait", "environments: steps"),
+                              (EnvWorkers, "step_wait", "environments: steps"),
+                              (EnvGroup, "reset", "environments: resets"),
+                              (EnvWorkers, "reset", "environments: resets"),
+                              (TD3Group, "act", "acting"), (ChoiceLearnerGroup, "act", "acting"),
                               (group_module.Group, "_update", "updates"),
                               (group_module.Group, "_evaluate", "evaluations"),
                               (group_module.Group, "_fresh", "evaluations"),

@@ -13,6 +13,7 @@ decides what it means) and end when their pipe closes, so none outlives the proc
 from __future__ import annotations
 
 import ctypes
+import itertools
 import multiprocessing
 import os
 import pickle
@@ -108,7 +109,7 @@ class EnvWorkers:
         self._shared = _Shared(rows, self.observation_space.shape[0], self.action_space.shape[0], context)
         self.obs = self._shared.obs
         bounds = np.linspace(0, rows, workers + 1).round().astype(int).tolist()
-        self._slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+        self._slices = [slice(a, b) for a, b in itertools.pairwise(bounds)]
         self._pipes: list[Connection] = []
         self._processes = []
         self._asked: list[int] = []
@@ -128,7 +129,7 @@ class EnvWorkers:
 
     def reset(self, rows: np.ndarray, seeds: Sequence[int | None]) -> None:
         self._shared.rows[:] = rows
-        self._ask("reset", lambda part: list(seeds[part]), rows)
+        self._ask("reset", list(seeds), rows)
         self._collect(self._asked)
 
     def step_async(self, actions: np.ndarray, rows: np.ndarray) -> None:
@@ -137,7 +138,7 @@ class EnvWorkers:
         self._shared.rows[:] = rows
         for array in self._shared.result:
             array[:] = 0  # the rows not stepped: zero and False
-        self._ask("step", lambda part: None, rows)
+        self._ask("step", None, rows)
 
     def step_wait(self) -> StepResult:
         self._collect(self._asked)
@@ -148,13 +149,13 @@ class EnvWorkers:
         return self.step_wait()
 
     def snapshots(self) -> list[dict[str, Any]]:
-        self._ask("snapshot", lambda part: None)
+        self._ask("snapshot", None)
         return [snapshot for part in self._collect(self._asked) for snapshot in part]
 
     def restore(self, snapshots: Sequence[dict[str, Any]], obs: np.ndarray) -> None:
         if len(snapshots) != len(self.obs):
             raise ValueError(f"{len(snapshots)} snapshots for {len(self.obs)} environments")
-        self._ask("restore", lambda part: list(snapshots[part]))
+        self._ask("restore", list(snapshots))
         self._collect(self._asked)
         self.obs[:] = obs
 
@@ -173,12 +174,14 @@ class EnvWorkers:
             pipe.close()
         self._pipes, self._processes, self._asked = [], [], []
 
-    def _ask(self, command: str, argument: Any, rows: np.ndarray | None = None) -> None:
-        """Send `command` with `argument(slice)` to every worker (with `rows`, those holding a row of the mask)."""
+    def _ask(self, command: str, per_row: list[Any] | None, rows: np.ndarray | None = None) -> None:
+        """Send `command` to every worker (with `rows`, those holding a row of the mask), with its slice of
+        `per_row` (one entry per row) if given."""
         self._asked = [w for w, part in enumerate(self._slices) if rows is None or rows[part].any()]
         for w in self._asked:
             try:
-                self._pipes[w].send_bytes(pickle.dumps((command, argument(self._slices[w]))))
+                part = None if per_row is None else per_row[self._slices[w]]
+                self._pipes[w].send_bytes(pickle.dumps((command, part)))
             except OSError:
                 raise EnvWorkerError(f"{self.env_id}: {self._lost(w)}") from None
 
@@ -201,7 +204,8 @@ class EnvWorkers:
 
     def _lost(self, w: int) -> str:
         first, last = self._slices[w].start, self._slices[w].stop - 1
-        return f"the worker process stepping {f'rows {first}-{last}' if last > first else f'row {first}'} ended unexpectedly"
+        rows = f"rows {first}-{last}" if last > first else f"row {first}"
+        return f"the worker process stepping {rows} ended unexpectedly"
 
 
 def _serve(pipe: Connection, env_id: str, part: slice, shared: _Shared) -> None:
@@ -217,11 +221,11 @@ def _serve(pipe: Connection, env_id: str, part: slice, shared: _Shared) -> None:
                 return
             try:
                 pipe.send_bytes(pickle.dumps((True, _carry_out(command, argument, envs, env_id, part, shared))))
-            except Exception:  # noqa: BLE001  (the group raises it, with this traceback)
+            except Exception:  # the group raises it, with this traceback
                 pipe.send_bytes(pickle.dumps((False, traceback.format_exc())))
     except (EOFError, OSError):
         return  # the group's process is gone
-    except Exception:  # noqa: BLE001  (making the environments failed)
+    except Exception:  # making the environments failed
         pipe.send_bytes(pickle.dumps((False, traceback.format_exc())))
     finally:
         for env in envs:

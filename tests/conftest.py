@@ -49,7 +49,7 @@ def registries_as_shipped():
     before = [dict(registry._entries) for registry in registries]
     modules = set(sys.modules)
     yield
-    for registry, entries in zip(registries, before):
+    for registry, entries in zip(registries, before, strict=True):
         registry._entries = entries
     for name in set(sys.modules) - modules:
         if name.startswith("layered_plugin_"):

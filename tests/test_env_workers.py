@@ -59,7 +59,7 @@ def play(envs, steps: int, seed: int, snapshot_at: int | None = None):
 
 def assert_same_trace(a, b):
     assert len(a) == len(b)
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         assert x.dtype == y.dtype and np.array_equal(x, y)
 
 
@@ -102,6 +102,7 @@ def test_a_step_can_be_collected_after_other_work():
 
 def test_a_failure_in_a_worker_is_raised_with_its_traceback_and_a_dead_worker_is_named():
     envs = EnvWorkers(ENV, 3, 2)
+    processes = list(envs._processes)
     try:
         with pytest.raises(EnvWorkerError, match="Traceback"):
             envs.restore([{}, {}, {}], envs.obs.copy())  # no state in these snapshots
@@ -111,7 +112,7 @@ def test_a_failure_in_a_worker_is_raised_with_its_traceback_and_a_dead_worker_is
             envs.step(np.zeros((3, 3), np.float32), np.ones(3, bool))
     finally:
         envs.close()
-    assert not any(p.is_alive() for p in envs._processes)
+    assert not any(process.is_alive() for process in processes)
 
 
 def test_workers_ignore_a_ctrl_c_at_the_terminal_and_are_gone_after_close():
