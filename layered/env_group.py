@@ -46,6 +46,8 @@ class Envs(Protocol):
 
     def step(self, actions: np.ndarray, rows: np.ndarray) -> StepResult:
         """`step_async` and `step_wait` at once."""
+        self.step_async(actions, rows)
+        return self.step_wait()
 
     def snapshots(self) -> list[dict[str, Any]]:
         """Each row's simulator state, mid-episode or not, as `restore` takes it (for a group's checkpoint)."""
@@ -82,7 +84,7 @@ def spaces(env: gym.Env) -> tuple[Box, Box]:
     return space, action_space
 
 
-class EnvGroup:
+class EnvGroup(Envs):
     """K environments stepped one after the other in this process (`Envs`)."""
 
     def __init__(self, env_id: str, rows: int) -> None:
@@ -104,10 +106,6 @@ class EnvGroup:
         result = (np.zeros(len(self.envs)), np.zeros(len(self.envs), bool), np.zeros(len(self.envs), bool))
         step_rows(self.envs, actions, rows, self.obs, result)
         return result
-
-    def step(self, actions: np.ndarray, rows: np.ndarray) -> StepResult:
-        self.step_async(actions, rows)
-        return self.step_wait()
 
     def snapshots(self) -> list[dict[str, Any]]:
         return [snapshot_env(self.env_id, env) for env in self.envs]

@@ -97,7 +97,7 @@ class _Shared:
         self.views()
 
 
-class EnvWorkers:
+class EnvWorkers(Envs):
     """K environments stepped in `workers` processes, rows split into contiguous slices (`Envs`)."""
 
     def __init__(self, env_id: str, rows: int, workers: int) -> None:
@@ -122,7 +122,8 @@ class EnvWorkers:
                 theirs.close()
                 self._pipes.append(mine)
                 self._processes.append(process)
-            self._collect(range(len(self._slices)))  # each worker has made its environments
+            self._asked = list(range(len(self._slices)))
+            self._collect()  # each worker has made its environments
         except BaseException:
             self.close()
             raise
@@ -130,7 +131,7 @@ class EnvWorkers:
     def reset(self, rows: np.ndarray, seeds: Sequence[int | None]) -> None:
         self._shared.rows[:] = rows
         self._ask("reset", list(seeds), rows)
-        self._collect(self._asked)
+        self._collect()
 
     def step_async(self, actions: np.ndarray, rows: np.ndarray) -> None:
         assert not self._asked, "a step is under way: collect it with step_wait first"
@@ -141,22 +142,18 @@ class EnvWorkers:
         self._ask("step", None, rows)
 
     def step_wait(self) -> StepResult:
-        self._collect(self._asked)
+        self._collect()
         return tuple(part.copy() for part in self._shared.result)  # type: ignore[return-value]
-
-    def step(self, actions: np.ndarray, rows: np.ndarray) -> StepResult:
-        self.step_async(actions, rows)
-        return self.step_wait()
 
     def snapshots(self) -> list[dict[str, Any]]:
         self._ask("snapshot", None)
-        return [snapshot for part in self._collect(self._asked) for snapshot in part]
+        return [snapshot for part in self._collect() for snapshot in part]
 
     def restore(self, snapshots: Sequence[dict[str, Any]], obs: np.ndarray) -> None:
         if len(snapshots) != len(self.obs):
             raise ValueError(f"{len(snapshots)} snapshots for {len(self.obs)} environments")
         self._ask("restore", list(snapshots))
-        self._collect(self._asked)
+        self._collect()
         self.obs[:] = obs
 
     def close(self) -> None:
@@ -185,10 +182,10 @@ class EnvWorkers:
             except OSError:
                 raise EnvWorkerError(f"{self.env_id}: {self._lost(w)}") from None
 
-    def _collect(self, asked: Sequence[int]) -> list[Any]:
-        """The answers of the `asked` workers, in their order; an EnvWorkerError for the first that failed."""
+    def _collect(self) -> list[Any]:
+        """The answers of the workers last asked, in their order; an EnvWorkerError for the first that failed."""
         answers, failure = [], None
-        for w in list(asked):
+        for w in self._asked:
             try:
                 ok, answer = pickle.loads(self._pipes[w].recv_bytes())
             except (EOFError, OSError):
