@@ -495,7 +495,7 @@ def _report(args: argparse.Namespace) -> int:
 
 def _sweep(args: argparse.Namespace) -> int:
     from layered.cuda_mps import shared_gpu
-    from layered.sweep import on_gpu, plan, run_local, run_ray
+    from layered.sweep import on_gpu, plan, process_count, run_local, run_ray
 
     overrides = [a for a in args.recipes if "=" in a] + args.overrides
     overrides += [f"learner.device={args.device}"] if args.device else []
@@ -515,7 +515,7 @@ def _sweep(args: argparse.Namespace) -> int:
         except RuntimeError as e:
             return _fail(str(e))
     else:
-        processes = min(args.jobs, len({job.label for job in jobs}) if args.vectorize else len(jobs))
+        processes = process_count(jobs, args.jobs, args.vectorize)
         with shared_gpu(processes if on_gpu(jobs) and not args.no_mps else 1) as line:
             if line is not None:
                 print(f"layered: note: {line}", file=sys.stderr)

@@ -15,7 +15,6 @@ from __future__ import annotations
 import ctypes
 import itertools
 import multiprocessing
-import os
 import pickle
 import signal
 import traceback
@@ -25,6 +24,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from layered.cores import usable_cores
 from layered.env_group import EnvGroup, Envs, StepResult, reset_rows, spaces, step_rows
 from layered.envs import make_env, restore_env, snapshot_env
 
@@ -33,11 +33,6 @@ WorkersSetting = int | Literal["auto"]
 
 class EnvWorkerError(RuntimeError):
     """An environment failed in a worker process (its traceback is in the message), or a worker died."""
-
-
-def usable_cores() -> int:
-    """The cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def worker_count(setting: WorkersSetting, rows: int, cores: int | None = None) -> int:

@@ -24,6 +24,7 @@ from typing import Any
 import tomli_w
 from tqdm import tqdm
 
+from layered.cores import share_cores, usable_cores
 from layered.interrupt import SIGNAL_NAMES
 from layered.ray_cluster import start_ray
 from layered.overrides import grid
@@ -188,8 +189,8 @@ def run_group(jobs: Sequence[Job]) -> list[Outcome]:
             for job, rows in zip(jobs, results, strict=True)]
 
 
-def _one(job: Job) -> list[Outcome]:
-    return [run_job(job)]
+def _one(task: list[Job]) -> list[Outcome]:
+    return [run_job(task[0])]
 
 
 @dataclass
@@ -231,10 +232,26 @@ def on_gpu(jobs: Sequence[Job]) -> bool:
                for recipe in recipes for i in range(len(recipe["layers"])))  # without a device setting runs on CPU)
 
 
+def tasks(jobs: Sequence[Job], vectorize: bool) -> list[list[Job]]:
+    """What one process of a sweep trains at a time: a job, or with `vectorize` the seeds of one setup."""
+    if not vectorize:
+        return [[job] for job in jobs]
+    setups: dict[str, list[Job]] = {}
+    for job in jobs:
+        setups.setdefault(job.label, []).append(job)
+    return list(setups.values())
+
+
+def process_count(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> int:
+    """How many processes a sweep of `workers` at most runs at once."""
+    return min(workers, len(tasks(jobs, vectorize)))
+
+
 def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tuple[list[Outcome], SweepStop]:
     """Run the jobs in `workers` processes, showing progress over jobs; the outcomes, and the signals
     that stopped the sweep (if any). With `vectorize`, the seeds of each setup train as one group
-    (`run_group`), one group per process.
+    (`run_group`), one group per process, each process given its share of the cores for its
+    environments' workers (`env.workers = "auto"`).
 
     Workers run in sessions of their own, so that a Ctrl-C at the terminal reaches the sweep alone,
     which tells them what to do (see SweepStop).
@@ -244,16 +261,12 @@ def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tup
     context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state forked
     stop = SweepStop(context.Event())
     before = {s: signal.signal(s, stop) for s in SIGNAL_NAMES}
+    processes = process_count(jobs, workers, vectorize)
+    cores = usable_cores() // processes
     try:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=context,
-                                 initializer=_init_worker, initargs=(os.getpid(), stop.event)) as pool:
-            if vectorize:
-                setups: dict[str, list[Job]] = {}
-                for job in jobs:
-                    setups.setdefault(job.label, []).append(job)
-                futures = [pool.submit(run_group, setup) for setup in setups.values()]
-            else:
-                futures = [pool.submit(_one, job) for job in jobs]
+        with ProcessPoolExecutor(max_workers=processes, mp_context=context,
+                                 initializer=_init_worker, initargs=(os.getpid(), stop.event, cores)) as pool:
+            futures = [pool.submit(run_group if vectorize else _one, task) for task in tasks(jobs, vectorize)]
             for future in as_completed(futures):
                 for outcome in future.result():
                     outcomes.append(outcome)
@@ -266,9 +279,9 @@ def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tup
     return outcomes, stop
 
 
-def _init_worker(sweep_pid: int, stop: Any) -> None:
-    """One torch thread per worker, in a session of its own; and the worker ends when the sweep process
-    is gone.
+def _init_worker(sweep_pid: int, stop: Any, cores: int) -> None:
+    """One torch thread per worker and its share of the `cores`, in a session of its own; and the worker
+    ends when the sweep process is gone.
 
     Without the watch, killing the sweep (not its process group) would leave workers training
     on in the background, writing into run directories nobody is waiting for.
@@ -279,6 +292,7 @@ def _init_worker(sweep_pid: int, stop: Any) -> None:
     for s in SIGNAL_NAMES:  # between runs, the sweep's signals are for runs that are not started: nothing to stop
         signal.signal(s, signal.SIG_IGN)
     os.environ["OMP_NUM_THREADS"] = "1"
+    share_cores(cores)
     threading.Thread(target=_exit_when_orphaned, args=(sweep_pid,), daemon=True).start()
 
 

@@ -7,6 +7,7 @@ import signal
 import numpy as np
 import pytest
 
+from layered import cores
 from layered.env_group import EnvGroup
 from layered.env_workers import EnvWorkerError, EnvWorkers, open_envs, worker_count
 
@@ -24,6 +25,15 @@ ENV = "Hopper-v5"  # episodes of different lengths, and a MuJoCo state in every 
 ])
 def test_how_many_workers_step_the_rows(setting, rows, cores, expected):
     assert worker_count(setting, rows, cores) == expected
+
+
+def test_a_process_given_a_share_of_the_cores_counts_those_alone(monkeypatch):
+    monkeypatch.setattr(cores, "_SHARE", None)
+    machine = cores.usable_cores()
+    cores.share_cores(0)  # more processes than cores: each still has one
+    assert cores.usable_cores() == 1
+    cores.share_cores(machine + 5)  # never more than the process may run on
+    assert cores.usable_cores() == machine
 
 
 def test_open_envs_steps_here_without_workers_and_in_processes_with_them():

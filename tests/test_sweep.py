@@ -1,12 +1,19 @@
 """Sweeps: every (recipe, seed) pair runs once in its own directory; finished runs are skipped."""
 
+import multiprocessing
+import os
 import signal
 import subprocess
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
+
+from layered.cores import usable_cores
+from layered.env_workers import worker_count
+from layered.sweep import _init_worker, plan, process_count, tasks
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
@@ -100,11 +107,26 @@ from concurrent.futures import ProcessPoolExecutor
 from layered.sweep import _init_worker
 if __name__ == "__main__":
     pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_init_worker, initargs=(os.getpid(), None))
+                               initializer=_init_worker, initargs=(os.getpid(), None, 1))
     print(pool.submit(os.getpid).result(), flush=True)
     pool.submit(time.sleep, 120)
     time.sleep(120)
 """
+
+
+def test_a_sweep_runs_a_process_per_run_or_per_setup_and_no_more_than_it_is_given(tmp_path):
+    jobs = plan([PENDULUM / "td3.toml", PENDULUM / "tla-c.toml"], 3, tmp_path)
+    assert [[job.out.name for job in task] for task in tasks(jobs, vectorize=True)] == [["seed0", "seed1", "seed2"]] * 2
+    assert len(tasks(jobs, vectorize=False)) == 6
+    assert [process_count(jobs, j) for j in (1, 4, 8)] == [1, 4, 6]
+    assert [process_count(jobs, j, vectorize=True) for j in (1, 4)] == [1, 2]
+
+
+def test_a_sweeps_worker_sizes_its_environments_workers_to_its_share_of_the_cores():
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(1, mp_context=context, initializer=_init_worker, initargs=(os.getpid(), None, 1)) as pool:
+        assert pool.submit(usable_cores).result() == 1
+        assert pool.submit(worker_count, "auto", 8, None).result() == 0
 
 
 def _alive(pid: int) -> bool:

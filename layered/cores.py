@@ -1,0 +1,23 @@
+"""The cores a process may use: those it may run on, or its share of them where it is one of several
+processes a sweep runs side by side on one machine (so that settings sized to the machine, such as
+`env.workers = "auto"`, are sized to the share)."""
+
+from __future__ import annotations
+
+import os
+
+_SHARE: int | None = None
+"""The cores this process is given of those it may run on (`share_cores`), None for all of them."""
+
+
+def share_cores(cores: int) -> None:
+    """Tell this process it is one of several sharing the machine and has `cores` of it (a sweep's worker
+    does), so that `auto` starts workers for those cores, not for the whole machine."""
+    global _SHARE
+    _SHARE = max(1, cores)
+
+
+def usable_cores() -> int:
+    """The cores this process may run on, or the share of them it was given (`share_cores`)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return cores if _SHARE is None else min(cores, _SHARE)
