@@ -243,8 +243,8 @@ def tasks(jobs: Sequence[Job], vectorize: bool) -> list[list[Job]]:
 
 
 def process_count(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> int:
-    """How many processes a sweep of `workers` at most runs at once."""
-    return min(workers, len(tasks(jobs, vectorize)))
+    """How many processes a sweep of `workers` at most runs at once (one, for a sweep with nothing to run)."""
+    return max(1, min(workers, len(tasks(jobs, vectorize))))
 
 
 def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tuple[list[Outcome], SweepStop]:
