@@ -11,8 +11,7 @@ inside another timed part counts to the outer one (an evaluation's steps are the
 for the read-back of the losses, always its own part. The environments' steps are the time spent
 waiting for them after the update is queued (with `--set env.workers=N` they step meanwhile). On a
 GPU, acting includes copying the actions to the host and the read-back waits for the updates queued
-since the last one, so those two parts
-are where host transfers and waiting show.
+since the last one, so those two parts are where host transfers and waiting show.
 """
 
 from __future__ import annotations
