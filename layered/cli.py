@@ -26,6 +26,7 @@ from layered.recipe import RecipeError, load_recipe, recipe_path
 from layered.report import plot_episode, results_table
 from layered.run_evals import DEFAULT_SWEEP
 from layered.rundir import RunDirError
+from layered.trainer import Diverged
 
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 1
@@ -536,14 +537,22 @@ COMMANDS = {"train": _train, "resume": _resume, "eval": _eval, "export": _export
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns 2 on bad input with one line per problem and no traceback, 1 when
     training diverged, 130 or 143 when SIGINT or SIGTERM stopped it."""
-    from layered.trainer import Diverged
+    return run(parse(argv))
 
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line's arguments, its `key=value` settings as `overrides`; a usage error exits with 2."""
     parser = _parser()
     args, extra = parser.parse_known_args(argv)
     unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command not in ("train", "sweep")]
     if unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     args.overrides = extra
+    return args
+
+
+def run(args: argparse.Namespace) -> int:
+    """Carry out a parsed command line, as `main` says."""
     if getattr(args, "threads", None):
         torch.set_num_threads(args.threads)
     try:

@@ -125,3 +125,43 @@ def test_ctrl_c_while_the_command_starts_is_one_line(tmp_path):
     err = proc.communicate(timeout=120)[1]
     assert proc.returncode == 130 and "Traceback" not in err, err
     assert err.strip().splitlines()[-1].startswith("layered: stopped")
+
+
+def test_ctrl_c_that_a_library_swallows_while_the_command_starts_still_stops_it(monkeypatch, capsys):
+    """A KeyboardInterrupt raised while modules load can be swallowed by the module being loaded (a bare
+    `except`, a finaliser): the command must stop all the same, with one line, before running anything."""
+    import os
+    import signal
+
+    import layered.cli
+    from layered import command
+
+    def swallowing_parse(argv):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)  # handled at once, in this thread
+        except BaseException:  # what a library's loading code may do
+            pass
+        return argv
+
+    ran = []
+    monkeypatch.setattr(layered.cli, "parse", swallowing_parse)
+    monkeypatch.setattr(layered.cli, "run", ran.append)
+    monkeypatch.setattr("sys.argv", ["layered", "train", str(TLA_C)])
+    assert command.main() == 130 and not ran
+    assert capsys.readouterr().err.strip() == "layered: stopped while starting; nothing was written"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+
+
+def test_a_second_ctrl_c_while_the_command_starts_stops_at_once():
+    """The first SIGINT while loading is held for the end of loading; a second one raises at once (a load
+    that hangs can still be interrupted)."""
+    import os
+    import signal
+
+    from layered.command import sigint_held
+
+    with pytest.raises(KeyboardInterrupt), sigint_held() as received:
+        os.kill(os.getpid(), signal.SIGINT)
+        assert received == [signal.SIGINT]
+        os.kill(os.getpid(), signal.SIGINT)
+        pytest.fail("the second SIGINT did not raise")
