@@ -49,9 +49,10 @@ from layered.interrupt import StopRequest, Stopped
 from layered.learner_set import build_learners, keep_start_weights, start_from_weights
 from layered.learners.choice_group import ChoiceLearnerGroup, GateTD3Group, TempoRLGroup
 from layered.learners.td3 import TD3Config
-from layered.learners.td3_group import GroupLosses, TD3Group
+from layered.learners.td3_group import TD3Group
 from layered.logs import CsvLog
 from layered.orders import Phase
+from layered.pending_losses import PendingLosses
 from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
@@ -269,7 +270,7 @@ class Group:
             for i in learn:
                 decisions[i][:] = [seed.state.decisions[self.names[i]] for seed in self.seeds]
         pending = loop.pending
-        losses: dict[str, list[GroupLosses]] = {self.names[i]: [] for i in learn}
+        losses = {self.names[i]: PendingLosses() for i in learn}
         every = np.ones(self.rows, bool)
         bar = Progress(f"phase {p}: {'+'.join(phase.learn)} ({self.rows} seeds)", budget, loop.step, self.progress)
 
@@ -329,7 +330,7 @@ class Group:
                 for seed in self.seeds]
 
     def _begin(self, phase: Phase, saved: GroupCheckpoint | None, rules: Rules, envs: Envs,
-               evaluator: tuple[Stack, Rules, Envs], losses: dict[str, list[GroupLosses]], bar: Progress) -> None:
+               evaluator: tuple[Stack, Rules, Envs], losses: dict[str, PendingLosses], bar: Progress) -> None:
         """Start the phase (its evaluation at step 0 and every row's first, seeded episode), or put the
         rules' rows and the environments where `saved` found them."""
         if saved is not None:
@@ -342,7 +343,7 @@ class Group:
         rules.reset()
 
     def _due(self, phase: Phase, loop: PhaseLoop, decisions: dict[str, np.ndarray],
-             losses: dict[str, list[GroupLosses]], rules: Rules, envs: Envs,
+             losses: dict[str, PendingLosses], rules: Rules, envs: Envs,
              evaluator: tuple[Stack, Rules, Envs], bar: Progress) -> None:
         """What is due after a step: an evaluation, a checkpoint, and the stop a signal asked for."""
         state = self.seeds[0].state
@@ -355,7 +356,7 @@ class Group:
         if self.stop.requested:
             raise Stopped(self.stop.requested, state.phase, loop.step, self.directory)
 
-    def _checkpoint(self, loop: PhaseLoop, decisions: dict[str, np.ndarray], losses: dict[str, list[GroupLosses]],
+    def _checkpoint(self, loop: PhaseLoop, decisions: dict[str, np.ndarray], losses: dict[str, PendingLosses],
                     rules: Rules, envs: Envs) -> None:
         """Save where the group stands, at any step: each seed's loop state (its losses read back first and
         its logs' sizes), the phase's open transitions, the rules' rows, the environments and the learners."""
@@ -381,13 +382,14 @@ class Group:
             self.seeds[k].state.episode += 1
         loop.returns[ended], loop.lengths[ended] = 0.0, 0
 
-    def _update(self, name: str, ready: np.ndarray, losses: dict[str, list[GroupLosses]]) -> None:
+    def _update(self, name: str, ready: np.ndarray, losses: dict[str, PendingLosses]) -> None:
         """Layer `name`'s updates (`updates` per decision) in the seeds of the `ready` mask."""
         if not ready.any():
             return
         for _ in range(self.recipe.layers[self.names.index(name)].updates):
             if (result := self.learners[name].update(ready)) is not None:
-                losses[name].append(result)
+                losses[name].add({n: values for n, (values, _) in result.items()},
+                                 {n: took for n, (_, took) in result.items()})
 
     def _store(self, i: int, mine: Pending, rows: np.ndarray, next_seen: np.ndarray, terminated: np.ndarray,
                stack: Stack) -> None:
@@ -399,7 +401,7 @@ class Group:
         self.learners[self.names[i]].observe(mine.seen, mine.output, mine.reward, next_seen, terminated, discount,
                                              rows, mine.path)
 
-    def _evaluate(self, phase: Phase, evaluator: tuple[Stack, Rules, Envs], losses: dict[str, list[GroupLosses]],
+    def _evaluate(self, phase: Phase, evaluator: tuple[Stack, Rules, Envs], losses: dict[str, PendingLosses],
                   step: int, bar: Progress) -> None:
         """Evaluate every seed's present layers now and log its row, with its mean losses since the last."""
         results = self._evaluations(phase, evaluator, self.recipe.eval.episodes, self.recipe.eval.seed_offset)
@@ -474,24 +476,19 @@ def _end_periods(pending: dict[int, Pending], ended: np.ndarray, rules: Rules, o
             mine.end_periods(ends, rules.observation(i, obs), stack.layers[i].discount_units)
 
 
-def _read_back(losses: dict[str, list[GroupLosses]], seeds: Sequence[Seed], step: int) -> None:
+def _read_back(losses: dict[str, PendingLosses], seeds: Sequence[Seed], step: int) -> None:
     """Add the losses of each layer's updates since the last read-back to each seed's loop state (each
     update a seed took part in, as the single loop's `UpdateStats`), read off the device in one copy per
     layer; a non-finite one stops the group."""
     names = TD3Group.loss_names
-    for name, updates in losses.items():
-        if not updates:
-            continue
-        values = iter(torch.stack([u[n][0] for u in updates for n in names if n in u]).cpu().numpy())
-        for update in updates:
-            taken = {n: (next(values), update[n][1]) for n in names if n in update}
-            for k in np.flatnonzero(update["critic"][1]).tolist():
-                stats: UpdateStats = {f"{n}_loss": float(v[k]) if took[k] else None for n, (v, took) in taken.items()}
-                stats |= {f"{n}_loss": None for n in names if n not in taken}
+    for name, pending in losses.items():
+        for values, took in pending.read():
+            for k in np.flatnonzero(took["critic"]).tolist():
+                stats: UpdateStats = {f"{n}_loss": float(values[n][k]) if n in values and took[n][k] else None
+                                      for n in names}
                 _check_finite(np.array([v for v in stats.values() if v is not None]), "loss", f"layer {name!r}",
                               seeds[k].state.phase, step)
                 seeds[k].state.losses[name].append(stats)
-        updates.clear()
 
 
 def _check_finite(values: np.ndarray, what: str, who: str, phase: int, step: int) -> None:

@@ -16,8 +16,9 @@ from typing import Any
 import torch
 
 from layered.checkpoint import CheckpointError, load_latest, save_checkpoint
-from layered.learners import Learner, Losses
+from layered.learners import Learner
 from layered.metrics import Evaluation
+from layered.pending_losses import PendingLosses
 from layered.rundir import steps_option
 
 
@@ -46,7 +47,7 @@ class LoopState:
     """(step, evaluation) of this phase so far."""
     losses: dict[str, list[UpdateStats]] = field(default_factory=dict)
     """Per learning layer: the losses of each update since the last evaluation, read back."""
-    pending: dict[str, list[Losses]] = field(default_factory=dict, repr=False)
+    pending: dict[str, PendingLosses] = field(default_factory=dict, repr=False)
     """Per learning layer: the losses of updates not yet read back from the learner's device (none
     at a checkpoint: they are read back first)."""
     rows: list[dict[str, Any]] = field(default_factory=list)
@@ -70,7 +71,7 @@ class LoopState:
         self.next_eval, self.next_checkpoint = eval_every, checkpoint_every
         self.decisions = dict.fromkeys(learn, 0)
         self.losses = {name: [] for name in learn}
-        self.pending = {name: [] for name in learn}
+        self.pending = {name: PendingLosses() for name in learn}
         self.curve, self.best = [], {}
 
     def finish_phase(self, row: dict[str, Any]) -> None:
@@ -90,7 +91,7 @@ class LoopState:
         """The state `to_json` wrote."""
         data = json.loads(text)
         data["curve"] = [(step, Evaluation(**evaluation)) for step, evaluation in data["curve"]]
-        return cls(**data, pending={name: [] for name in data["losses"]})
+        return cls(**data, pending={name: PendingLosses() for name in data["losses"]})
 
 
 def recipe_digest(resolved_recipe: dict[str, Any]) -> str:

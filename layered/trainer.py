@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from layered.agents import LayeredEnv, make_aec_env
 from layered.checkpoint import save_checkpoint
@@ -198,7 +197,7 @@ def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, e
             if state.decisions[name] > warmups[name]:
                 for _ in range(updates[name]):
                     if (losses := learner.update()) is not None:
-                        state.pending[name].append(losses)
+                        state.pending[name].add(losses)
         if state.step >= state.next_eval:  # log
             _evaluate(run, state, phase, eval_env, bar)
             state.next_eval += recipe.eval.every
@@ -257,11 +256,10 @@ def _read_back_losses(state: LoopState, learners: dict[str, Learner]) -> None:
         if not pending:
             continue
         names = type(learners[name]).loss_names
-        values = iter(torch.stack([p[k] for p in pending for k in names if k in p]).tolist())
-        stats = [{f"{k}_loss": next(values) if k in p else None for k in names} for p in pending]
+        stats = [{f"{k}_loss": float(losses[k]) if k in losses else None for k in names}
+                 for losses, _ in pending.read()]
         _check_finite(np.array([v for s in stats for v in s.values() if v is not None]), "loss", name, state)
         state.losses[name] += stats
-        pending.clear()
 
 
 def _check_finite(values: np.ndarray, what: str, layer: str, state: LoopState) -> None:
