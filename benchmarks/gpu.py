@@ -16,15 +16,24 @@ Pendulum-v1; `--hidden`, default 400-300; batch 256):
   benchmark's recipe or on `--group-recipe` (with `--set` settings); the rate of its progress
   lines times K is the aggregate.
 
-    python benchmarks/gpu.py                                                  # all three, on the GPU
+A fourth part, **targets**, measures the figures the vectorised engine is held to, each against what
+it must reach, in one table: one TD3 seed on HalfCheetah-v5 with 256-256 networks (the best of the
+single run's `--modes` and a group of one's `--group-modes`; LeanRL's published 936 steps/s on an
+H100), `--target-seeds` (32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s) and as
+many seeds of the real-time Hopper TLA recipe (10,000), the groups' environments in `--group-workers`.
+A failed setting is a row that says why; the others still run.
+
+    python benchmarks/gpu.py --parts targets                                  # the engine's targets, measured
+    python benchmarks/gpu.py                                                  # the three parts, on the GPU
     python benchmarks/gpu.py --env HalfCheetah-v5 --hidden 256,256 --parts modes,group --groups 1
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 1,4,16,32,64
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --group-workers 0,auto
     python benchmarks/gpu.py --parts group --groups 32 --group-recipe recipes/hopper/tla-realtime.toml \
         --set layers.slow.warmup=500 --set layers.fast.warmup=1000
     python benchmarks/gpu.py --device cpu --modes off,inductor --jobs 1,2 --groups 1,2 --group-modes off --steps 1500
+    python benchmarks/gpu.py --device cpu --parts targets --modes off --group-modes off --target-seeds 2 --steps 1500
 
-The last runs on a CPU (without `cudagraphs`), to check the script itself.
+The last two run on a CPU (without `cudagraphs`), to check the script itself.
 """
 
 from __future__ import annotations
@@ -49,7 +58,14 @@ RECIPE: dict[str, Any] = {
     "learner": {"kind": "td3", "hidden": [400, 300], "batch_size": 256},
     "eval": {"episodes": 1, "fresh_episodes": 0},
 }
-RATE = re.compile(r"step (\d+)/\d+, eval return .*, (\d+) steps/s")
+RATE = re.compile(r"^(.*): step \d+/\d+, eval return .*, (\d+) steps/s$", re.MULTILINE)
+ROOT = Path(__file__).resolve().parent.parent
+REALTIME_TLA = ROOT / "recipes/hopper/tla-realtime.toml"
+REALTIME_WARMUP = ["layers.slow.warmup=500", "layers.fast.warmup=1000"]  # the recipe's 10k and 20k, cut to the run
+
+
+class Failed(RuntimeError):
+    """A measured command failed (its last line of errors is the message)."""
 
 
 def td3_recipe(env: str, hidden: str, steps: int, warmup: int, every: int, **learner: str) -> dict[str, Any]:
@@ -101,8 +117,7 @@ def sweep(device: str, jobs: int, env: str, hidden: str, steps: int, warmup: int
         wall = time.perf_counter() - start
         rates = []
         for log in sorted(Path(tmp, "runs").rglob("train.log")):
-            intervals = [int(m.group(2)) for m in RATE.finditer(log.read_text())]
-            rates.append(statistics.median(intervals[1:] or intervals))
+            rates.append(settled_rate(log.read_text()))
     return {"jobs": jobs, "per_seed": rates, "aggregate": sum(rates), "wall_seconds": wall}
 
 
@@ -123,10 +138,94 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
                               capture_output=True, text=True)
         wall = time.perf_counter() - start
         if proc.returncode != 0:
-            raise SystemExit(f"group of {seeds} failed: {proc.stderr.strip().splitlines()[-1]}")
-        intervals = [int(m.group(2)) for m in RATE.finditer(proc.stderr)]
-        rate = statistics.median(intervals[1:] or intervals)
+            raise Failed(f"group of {seeds} failed: {_last_line(proc.stderr)}")
+        rate = settled_rate(proc.stderr)
     return {"seeds": seeds, "per_seed": rate, "aggregate": rate * seeds, "wall_seconds": wall}
+
+
+def settled_rate(log: str) -> float:
+    """The median steps/s of a run's progress lines, each phase's first interval (its warm-up, where the
+    layer acts at random without updating, and any compilation) left out."""
+    phases: dict[str, list[int]] = {}
+    for m in RATE.finditer(log):
+        phases.setdefault(m.group(1), []).append(int(m.group(2)))
+    intervals = [rate for rates in phases.values() for rate in rates[1:]]
+    if not intervals:
+        raise Failed("too few progress lines to measure a rate: raise --steps")
+    return statistics.median(intervals)
+
+
+def one_seed_child(args: argparse.Namespace, mode: str, env: str, hidden: str) -> dict[str, Any]:
+    """`one_seed` in a process of its own (a compiled or captured run leaves state behind in its process)."""
+    proc = subprocess.run([sys.executable, __file__, "--child", mode, str(args.settle), "--device", args.device,
+                           "--steps", str(args.steps), "--warmup", str(args.warmup), "--env", env, "--hidden", hidden],
+                          capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise Failed(_last_line(proc.stderr))
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float]]:
+    """The engine's targets: (what, the setting measured, steps/s or why it failed, steps/s needed) per setting."""
+    k = args.target_seeds
+    rows: list[tuple[str, str, float | str, float]] = []
+
+    def measured(what: str, setting: str, needed: float, run: Any) -> None:
+        try:
+            rows.append((what, setting, run(), needed))
+        except Failed as e:
+            rows.append((what, setting, str(e), needed))
+        print(_target_row(rows[-1]), flush=True)
+
+    one = "one TD3 seed, HalfCheetah-v5, 256-256"
+    for mode in args.modes.split(","):
+        measured(one, f"single run, compile {mode}", 936,
+                 lambda mode=mode: one_seed_child(args, mode, "HalfCheetah-v5", "256,256")["steps_per_second"])
+    for mode in args.group_modes.split(","):
+        measured(one, f"group of 1, compile {mode}", 936,
+                 lambda mode=mode: group(args.device, 1, None, "HalfCheetah-v5", "256,256", args.steps, args.warmup,
+                                         mode, "0", [])["aggregate"])
+    for what, recipe, env, settings, needed in (
+            (f"{k} TD3 seeds of Hopper-v5, 400-300, one group", None, "Hopper-v5", [], 20_000),
+            (f"{k} seeds of real-time Hopper TLA (2 layers), one group", str(REALTIME_TLA), "Hopper-v5",
+             [*REALTIME_WARMUP, f"eval.every={max(args.steps // 6, 1)}", "eval.episodes=1", "eval.fresh_episodes=0"],
+             10_000)):
+        for mode in args.group_modes.split(","):
+            for workers in args.group_workers.split(","):
+                measured(what, f"compile {mode}, env.workers {workers}", needed,
+                         lambda recipe=recipe, env=env, settings=settings, mode=mode, workers=workers: group(
+                             args.device, k, recipe, env, "400,300", args.steps, args.warmup, mode, workers,
+                             settings)["aggregate"])
+    return rows
+
+
+def print_targets(args: argparse.Namespace) -> None:
+    """Measure the targets, a row per setting as it ends, then the best setting of each target against it."""
+    print(f"\nThe engine's targets ({args.steps} steps per run and phase, {args.warmup} random; real-time TLA with "
+          f"{', '.join(REALTIME_WARMUP)}; one evaluation episode every sixth of a run)\n", flush=True)
+    print("| target | setting | steps/s | needed | met |\n|---|---|---|---|---|", flush=True)
+    rows = targets(args)
+    best: dict[str, float] = {}
+    for what, _, value, _ in rows:
+        if not isinstance(value, str):
+            best[what] = max(best.get(what, 0.0), value)
+    print("\n| target | best steps/s | needed | met |\n|---|---|---|---|")
+    for what, needed in dict.fromkeys((row[0], row[3]) for row in rows):
+        value = best.get(what)
+        shown = "every setting failed" if value is None else f"{value:,.0f}"
+        print(f"| {what} | {shown} | {needed:,.0f} | {'yes' if value is not None and value >= needed else 'no'} |")
+
+
+def _target_row(row: tuple[str, str, float | str, float]) -> str:
+    what, setting, value, needed = row
+    if isinstance(value, str):
+        return f"| {what} | {setting} | failed: {value} | {needed:,.0f} | no |"
+    return f"| {what} | {setting} | {value:,.0f} | {needed:,.0f} | {'yes' if value >= needed else 'no'} |"
+
+
+def _last_line(text: str) -> str:
+    lines = text.strip().splitlines()
+    return lines[-1] if lines else "no message"
 
 
 def main() -> None:
@@ -147,7 +246,9 @@ def main() -> None:
                         help="learner.compile values of the group part: eager, and the update as CUDA graphs")
     parser.add_argument("--group-workers", default="auto",
                         help="env.workers values of the group part (0,auto: in the training process, and in workers)")
-    parser.add_argument("--parts", default="modes,sweep,group", help="which parts to run (default all three)")
+    parser.add_argument("--parts", default="modes,sweep,group",
+                        help="which parts to run: modes, sweep, group (the default: all three) and targets")
+    parser.add_argument("--target-seeds", type=int, default=32, help="the targets' group size (default 32)")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -162,14 +263,11 @@ def main() -> None:
     if "modes" in args.parts:
         print("\n| learner.compile | steps/s after settling | first updates (s) | wall s |\n|---|---|---|---|")
         for mode in args.modes.split(","):
-            proc = subprocess.run([sys.executable, __file__, "--child", mode, str(args.settle), "--device", args.device,
-                                   "--steps", str(args.steps), "--warmup", str(args.warmup), "--env", args.env,
-                                   "--hidden", args.hidden],
-                                  capture_output=True, text=True, check=False)
-            if proc.returncode != 0:
-                print(f"| {mode} | failed: {proc.stderr.strip().splitlines()[-1]} | | |", flush=True)
+            try:
+                row = one_seed_child(args, mode, args.env, args.hidden)
+            except Failed as e:
+                print(f"| {mode} | failed: {e} | | |", flush=True)
                 continue
-            row = json.loads(proc.stdout.strip().splitlines()[-1])
             print(f"| {mode} | {row['steps_per_second']:.1f} | {row['settle_seconds']:.1f} "
                   f"| {row['wall_seconds']:.1f} |", flush=True)
     if "sweep" in args.parts:
@@ -187,10 +285,16 @@ def main() -> None:
         for k in map(int, args.groups.split(",")):
             for mode in args.group_modes.split(","):
                 for workers in args.group_workers.split(","):
-                    row = group(args.device, k, args.group_recipe, args.env, args.hidden, args.steps, args.warmup,
-                                mode, workers, args.set)
+                    try:
+                        row = group(args.device, k, args.group_recipe, args.env, args.hidden, args.steps,
+                                    args.warmup, mode, workers, args.set)
+                    except Failed as e:
+                        print(f"| {k} | {mode} | {workers} | failed: {e} | | |", flush=True)
+                        continue
                     print(f"| {k} | {mode} | {workers} | {row['aggregate']:.0f} | {row['per_seed']:.0f} | "
                           f"{row['wall_seconds']:.1f} |", flush=True)
+    if "targets" in args.parts:
+        print_targets(args)
 
 
 if __name__ == "__main__":
