@@ -143,13 +143,13 @@ def test_ctrl_c_that_a_library_swallows_while_the_command_starts_still_stops_it(
             pass
         return argv
 
-    ran = []
+    ran, before = [], signal.getsignal(signal.SIGINT)
     monkeypatch.setattr(layered.cli, "parse", swallowing_parse)
     monkeypatch.setattr(layered.cli, "run", ran.append)
     monkeypatch.setattr("sys.argv", ["layered", "train", str(TLA_C)])
     assert command.main() == 130 and not ran
     assert capsys.readouterr().err.strip() == "layered: stopped while starting; nothing was written"
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+    assert signal.getsignal(signal.SIGINT) is before  # put back
 
 
 def test_a_second_ctrl_c_while_the_command_starts_stops_at_once():
