@@ -1,5 +1,5 @@
 # Set-up and the two main jobs. Each target creates .venv on first use and installs torch 2.13.0
-# (a CPU build) before the project, so the project's torch>=2.3 requirement is already met.
+# (a CPU build) before the project, so the project's torch>=2.4 requirement is already met.
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
