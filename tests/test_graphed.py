@@ -4,13 +4,14 @@ any machine, by the operations it dispatches). The capture itself is checked whe
 
 import contextlib
 import functools
+import warnings
 
 import numpy as np
 import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from layered.learners.graphed import GraphedStep
+from layered.learners.graphed import GraphedStep, register_generators
 from layered.learners.td3 import TD3Config
 from layered.learners.td3_group import TD3Group
 from test_td3_group import fill, flat_state, learners
@@ -164,6 +165,29 @@ def test_a_graphed_step_is_eager_on_the_capture_stream_then_captured_once_then_r
     assert [float(o[0]) for o in outputs] == [1.0, 2.0, 3.0, 4.0, 4.0, 4.0]
     assert outputs[3] is not step.outputs and outputs[4] is not outputs[5]  # copies, each outliving the next replay
     assert streams[0].waited_for == [current] * 4 and current.waited_for == [streams[0]] * 4
+
+
+class DeprecatedRegistration(FakeGraph):
+    """A graph of a torch that registers generators by itself and warns when asked to."""
+
+    def register_generator_state(self, generator):
+        warnings.warn("register_generator_state is deprecated and does nothing", FutureWarning, stacklevel=2)
+
+
+class NoRegistration:
+    """A graph of a torch that no longer has the method at all."""
+
+    def __init__(self):
+        self.generators = []
+
+
+@pytest.mark.parametrize("kind", [DeprecatedRegistration, NoRegistration])
+def test_a_torch_that_registers_generators_itself_is_not_asked_to_or_quietly(kind):
+    graph = kind()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        register_generators(graph, [torch.Generator()])
+    assert graph.generators == []
 
 
 @CUDA

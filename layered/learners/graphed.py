@@ -12,6 +12,7 @@ the next call captures it, and every call from then on replays it.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Generic, TypeVar
 
@@ -65,9 +66,22 @@ class GraphedStep(Generic[Out]):
     def _capture(self) -> Out:
         """Record the step's kernels (nothing runs while they are recorded: the replay that follows runs them)."""
         graph = torch.cuda.CUDAGraph()
-        for generator in self.generators:
-            graph.register_generator_state(generator)
+        register_generators(graph, self.generators)
         with torch.cuda.graph(graph, stream=self.stream):
             self.outputs = self.step()
         self.graph = graph
         return self.outputs
+
+
+def register_generators(graph: torch.cuda.CUDAGraph, generators: Sequence[torch.Generator]) -> None:
+    """Register `generators` with `graph`, so that each replay advances them. torch 2.14 registers a generator
+    by itself at its first draw in a capture and deprecates doing it by hand (a call that does nothing and
+    warns); where the method is gone, nothing is left to do."""
+    register = getattr(graph, "register_generator_state", None)
+    if register is None:
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        warnings.simplefilter("ignore", FutureWarning)
+        for generator in generators:
+            register(generator)
