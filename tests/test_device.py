@@ -64,11 +64,19 @@ def test_cuda_run_resumes_to_the_same_files(tiny, tmp_path, monkeypatch):
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
-def test_cuda_graphs_without_a_gpu_are_refused_before_anything_is_written(tmp_path):
-    recipe = load_recipe("pendulum/tla-c.toml", ["learner.device=auto", "learner.compile=cudagraphs"])
-    with pytest.raises(RecipeError, match=r"learner\.compile: 'cudagraphs' asked for, but .*no CUDA GPU"):
+@pytest.mark.parametrize("setting", ["learner.compile=cudagraphs", "learner.precision=tf32"])
+def test_gpu_settings_without_a_gpu_are_refused_before_anything_is_written(setting, tmp_path):
+    recipe = load_recipe("pendulum/tla-c.toml", ["learner.device=auto", setting])
+    key, value = setting.split("=")
+    with pytest.raises(RecipeError, match=rf"{key}: '{value}' asked for, but .*no CUDA GPU"):
         train(recipe, tmp_path / "run", max_steps=100, progress=False)
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("setting", ["learner.compile=cudagraphs", "learner.precision=tf32"])
+def test_gpu_settings_on_a_cpu_learner_are_refused_as_the_recipe_loads(setting):
+    with pytest.raises(RecipeError, match="a GPU"):
+        load_recipe("pendulum/tla-c.toml", ["learner.device=cpu", setting])
 
 
 @CUDA
@@ -77,3 +85,28 @@ def test_compiled_cuda_learners_train(mode, tiny, tmp_path):
     recipe = load_recipe("pendulum/tla-c.toml", [*tiny, "learner.device=cuda", f"learner.compile={mode}"])
     train(recipe, tmp_path, max_steps=300, progress=False)
     assert (tmp_path / "results.json").exists()
+
+
+@CUDA
+def test_tf32_updates_multiply_in_tf32_on_the_gpu_and_act_in_float32(tiny, tmp_path):
+    """TF32 keeps 10 bits of a product's mantissa: a 256-wide float32 product is off by about 1e-3 of its size
+    inside the updates' region (on a GPU from Ampere on), by about 1e-6 outside it, where acting runs; a run
+    in tf32 trains (its group, captured as CUDA graphs, resumes exactly: tests/test_group_resume.py)."""
+    from layered.learners.precision import products
+
+    if torch.cuda.get_device_capability() < (8, 0):
+        pytest.skip("TF32 needs an Ampere or later GPU")
+    a, b = (torch.randn(256, 256, device="cuda", generator=torch.Generator("cuda").manual_seed(i)) for i in (0, 1))
+    exact = a.double() @ b.double()
+
+    def error() -> float:
+        return float(((a @ b).double() - exact).abs().max() / exact.abs().max())
+
+    outside = error()
+    with products("tf32", torch.device("cuda")):
+        inside = error()
+    assert outside < 1e-5 < 1e-4 < inside < 1e-2
+    recipe = load_recipe("pendulum/tla-c.toml", [*tiny, "learner.device=cuda", "learner.precision=tf32"])
+    train(recipe, tmp_path, max_steps=300, progress=False)
+    assert (tmp_path / "results.json").exists()
+    assert torch.get_float32_matmul_precision() == "highest"  # the process's own again, after every update

@@ -53,6 +53,9 @@ def assert_same_group(a: Path, b: Path, seeds) -> None:
     pytest.param("pendulum/tla-c.toml", ["learner.device=cuda", "learner.compile=cudagraphs"], 300,
                  [(0, 137), (1, 151)], marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU"),
                  id="cudagraphs"),  # updates captured, then eager again after each resume until captured anew
+    pytest.param("pendulum/tla-c.toml", ["learner.device=cuda", "learner.compile=cudagraphs", "learner.precision=tf32"],
+                 300, [(0, 137)], marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU"),
+                 id="cudagraphs-tf32"),  # the TF32 products captured in the graphs
 ])
 def test_a_group_stopped_mid_episode_resumes_to_the_same_files(recipe, overrides, steps, moments, tmp_path,
                                                                monkeypatch):

@@ -1,5 +1,5 @@
-"""The updates' precision: what `auto` resolves to, the actor's squashing kept in float32, and a resumed
-learner keeping the precision it was trained in."""
+"""The updates' precision: what `auto` resolves to, the actor's squashing kept in float32, the TF32 region
+and its refusal off a GPU, and a resumed learner keeping the precision it was trained in."""
 
 import numpy as np
 import pytest
@@ -7,7 +7,7 @@ import torch
 from gymnasium.spaces import Box
 
 from layered.learners import precision
-from layered.learners.precision import cpu_flags, resolve_precision
+from layered.learners.precision import cpu_flags, products, resolve_precision
 from layered.learners.td3 import TD3, TD3Config, squash
 from layered.learners.td3_group import TD3Group
 from layered.outputs import OutputLayout
@@ -43,6 +43,34 @@ def test_auto_on_a_gpu_asks_for_native_bfloat16(monkeypatch, native):
                         or native)
     assert resolve_precision("auto", torch.device("cuda")) == ("bfloat16" if native else "float32")
     assert asked == [False]
+
+
+def test_tf32_is_a_gpu_precision():
+    assert resolve_precision("tf32", torch.device("cuda")) == "tf32"
+    with pytest.raises(ValueError, match="'tf32' needs the learner on a GPU"):
+        resolve_precision("tf32", CPU)
+    with pytest.raises(ValueError, match="'tf32' is a GPU's"):
+        TD3Config(precision="tf32", device="cpu")
+    assert TD3Config(precision="tf32", device="auto").precision == "tf32"  # refused at the recipe's check without one
+
+
+def test_the_tf32_region_sets_torchs_float32_products_to_tf32_and_gives_back_the_processs_own():
+    """Inside it, torch's float32 matmul precision is "high" (TF32 on a GPU); after it, even after an error,
+    whatever the process had, so that acting and the user's own code stay as they were."""
+    before = torch.get_float32_matmul_precision()
+    try:
+        for own in ("highest", "medium"):
+            torch.set_float32_matmul_precision(own)
+            with products("tf32", torch.device("cuda")):
+                assert torch.get_float32_matmul_precision() == "high"
+            assert torch.get_float32_matmul_precision() == own
+            with pytest.raises(RuntimeError, match="inside"), products("tf32", torch.device("cuda")):
+                raise RuntimeError("inside")
+            assert torch.get_float32_matmul_precision() == own
+            with products("float32", CPU), products("bfloat16", CPU):  # the others leave it alone
+                assert torch.get_float32_matmul_precision() == own
+    finally:
+        torch.set_float32_matmul_precision(before)
 
 
 def test_the_actors_squashing_keeps_a_gradient_where_bfloat16_rounds_tanh_to_one():

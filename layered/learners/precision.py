@@ -1,9 +1,12 @@
-"""The precision of a learner's updates: what `precision = "auto"` means on a device, and the autocast region
-that computes the updates' products in it."""
+"""The precision of a learner's updates: what `precision = "auto"` means on a device, and the region that
+computes the updates' products in it (bfloat16 under autocast, or float32 products in TF32 on a GPU)."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
+from collections.abc import Iterator
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +36,9 @@ def native_bfloat16(device: torch.device) -> bool:
 
 def resolve_precision(name: str, device: torch.device) -> str:
     """The precision a `precision` setting computes in on `device`: `auto` is bfloat16 where the device
-    multiplies it natively, float32 elsewhere."""
+    multiplies it natively, float32 elsewhere; `tf32` is refused off a GPU."""
+    if name == "tf32" and device.type != "cuda":
+        raise ValueError(f"precision 'tf32' needs the learner on a GPU (its device is {device.type!r})")
     if name != "auto":
         return name
     return "bfloat16" if native_bfloat16(device) else "float32"
@@ -45,8 +50,22 @@ def loaded_precision(setting: str, current: str, state: dict[str, Any]) -> str:
     return state.get("precision", current) if setting == "auto" else current
 
 
-def autocast(precision: str, device: torch.device, cache: bool = True) -> torch.autocast:
+def products(precision: str, device: torch.device, cache: bool = True) -> AbstractContextManager[Any]:
     """The region computing the updates' products in `precision` (a resolved one); weights, optimiser
     moments and acting stay float32. `cache=False` for a step captured as a CUDA graph, which forbids
     autocast's cache of casts."""
+    if precision == "tf32":
+        return tf32_products()
     return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bfloat16", cache_enabled=cache)
+
+
+@contextlib.contextmanager
+def tf32_products() -> Iterator[None]:
+    """Float32 matrix products in TensorFloat-32 on the GPU (torch's float32 matmul precision "high") while
+    the region runs, and the process's own setting again after it, so that acting stays float32."""
+    before = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision("high")
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(before)

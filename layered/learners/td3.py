@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import itertools
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -16,7 +17,7 @@ from torch.func import functional_call
 
 from layered.buffer import Batch, ReplayBuffer, Transition
 from layered.learners.base import LEARNERS, Flag, Learner, LearnerConfig, Losses, Whole
-from layered.learners.precision import autocast, loaded_precision, resolve_precision
+from layered.learners.precision import loaded_precision, products, resolve_precision
 from layered.outputs import OutputLayout
 
 
@@ -60,11 +61,12 @@ class TD3Config(LearnerConfig):
     zero_output: Flag = False
     """Start the actor's last layer at zero, so that it outputs the middle of its range until it
     learns: a residual layer then starts by adding nothing to the layers above it."""
-    precision: Literal["auto", "float32", "bfloat16"] = "auto"
+    precision: Literal["auto", "float32", "bfloat16", "tf32"] = "auto"
     """Precision of the updates' matrix products: `bfloat16` (autocast; weights, optimiser and acting
-    stay float32), `float32`, or `auto`: bfloat16 where the device multiplies it in hardware (GPUs
-    that do; CPUs with AVX-512 BF16, AMX or Arm BF16), float32 elsewhere. bfloat16 learns as float32
-    does on the tasks checked in docs/experiments.md, at about twice the update rate on such a CPU.
+    stay float32), `float32`, `tf32` (float32 products in TensorFloat-32 on a GPU from Ampere on, for a
+    task where bfloat16 learns worse; GPU only), or `auto`: bfloat16 where the device multiplies it in
+    hardware (GPUs that do; CPUs with AVX-512 BF16, AMX or Arm BF16), float32 elsewhere. bfloat16 learns
+    as float32 does on the tasks checked in docs/experiments.md, at about twice the update rate on such a CPU.
     A checkpoint records the precision its learner computed in; with `auto`, a run resumed from it
     (or started from its weights) keeps that precision wherever it runs."""
     compile: Literal["off", "inductor", "cudagraphs"] = "off"
@@ -89,12 +91,19 @@ class TD3Config(LearnerConfig):
         if self.compile == "cudagraphs":
             problems.append(("learner.compile", "'cudagraphs' asked for, but torch sees no CUDA GPU here (use "
                              "'inductor' or 'off')"))
+        if self.precision == "tf32":
+            problems.append(("learner.precision", "'tf32' asked for, but torch sees no CUDA GPU here (use "
+                             "'float32', 'bfloat16' or 'auto')"))
         return problems
 
     @model_validator(mode="after")
-    def _cudagraphs_need_a_gpu(self) -> TD3Config:
-        if self.compile == "cudagraphs" and self.device == "cpu":
-            raise ValueError("compile = 'cudagraphs' needs the learner on a GPU: device = 'cuda' or 'auto'")
+    def _gpu_settings_need_a_gpu(self) -> TD3Config:
+        if self.device == "cpu":
+            if self.compile == "cudagraphs":
+                raise ValueError("compile = 'cudagraphs' needs the learner on a GPU: device = 'cuda' or 'auto'")
+            if self.precision == "tf32":
+                raise ValueError("precision = 'tf32' is a GPU's: device = 'cuda' or 'auto' (on a CPU: 'float32', "
+                                 "'bfloat16' or 'auto')")
         return self
 
 
@@ -318,9 +327,9 @@ class TD3(Learner):
         for targets, sources in pairs:
             torch._foreach_lerp_(targets, sources, self.config.tau)
 
-    def _precision(self) -> torch.autocast:
+    def _precision(self) -> AbstractContextManager[Any]:
         """The precision of the update's matrix products (see TD3Config.precision)."""
-        return autocast(self.precision, self.device)
+        return products(self.precision, self.device)
 
     def state_dict(self) -> dict[str, Any]:
         return {
