@@ -92,7 +92,7 @@ def test_tf32_updates_multiply_in_tf32_on_the_gpu_and_act_in_float32(tiny, tmp_p
     """TF32 keeps 10 bits of a product's mantissa: a 256-wide float32 product is off by about 1e-3 of its size
     inside the updates' region (on a GPU from Ampere on), by about 1e-6 outside it, where acting runs; a run
     in tf32 trains (its group, captured as CUDA graphs, resumes exactly: tests/test_group_resume.py)."""
-    from layered.learners.precision import products
+    from layered.learners.precision import update_region
 
     if torch.cuda.get_device_capability() < (8, 0):
         pytest.skip("TF32 needs an Ampere or later GPU")
@@ -103,7 +103,7 @@ def test_tf32_updates_multiply_in_tf32_on_the_gpu_and_act_in_float32(tiny, tmp_p
         return float(((a @ b).double() - exact).abs().max() / exact.abs().max())
 
     outside = error()
-    with products("tf32", torch.device("cuda")):
+    with update_region("tf32"):
         inside = error()
     assert outside < 1e-5 < 1e-4 < inside < 1e-2
     recipe = load_recipe("pendulum/tla-c.toml", [*tiny, "learner.device=cuda", "learner.precision=tf32"])

@@ -6,8 +6,10 @@ import pytest
 import torch
 from gymnasium.spaces import Box
 
+from layered.buffer import Transition
+
 from layered.learners import precision
-from layered.learners.precision import cpu_flags, products, resolve_precision
+from layered.learners.precision import autocast, cpu_flags, resolve_precision, update_region
 from layered.learners.td3 import TD3, TD3Config, squash
 from layered.learners.td3_group import TD3Group
 from layered.outputs import OutputLayout
@@ -61,16 +63,37 @@ def test_the_tf32_region_sets_torchs_float32_products_to_tf32_and_gives_back_the
     try:
         for own in ("highest", "medium"):
             torch.set_float32_matmul_precision(own)
-            with products("tf32", torch.device("cuda")):
+            with update_region("tf32"):
                 assert torch.get_float32_matmul_precision() == "high"
             assert torch.get_float32_matmul_precision() == own
-            with pytest.raises(RuntimeError, match="inside"), products("tf32", torch.device("cuda")):
+            with pytest.raises(RuntimeError, match="inside"), update_region("tf32"):
                 raise RuntimeError("inside")
             assert torch.get_float32_matmul_precision() == own
-            with products("float32", CPU), products("bfloat16", CPU):  # the others leave it alone
-                assert torch.get_float32_matmul_precision() == own
+            with update_region("float32"), update_region("bfloat16"), autocast("tf32", CPU):  # the others leave it
+                assert torch.get_float32_matmul_precision() == own and not torch.is_autocast_enabled("cpu")
     finally:
         torch.set_float32_matmul_precision(before)
+
+
+def test_a_tf32_learners_update_runs_inside_the_region_and_leaves_it(monkeypatch):
+    """A single learner's and a group's whole update runs in TF32's region (outside their steps, which torch
+    may compile or capture and which cannot change torch's settings themselves), and acting after it."""
+    config = TD3Config(hidden=(8,), batch_size=4, precision="float32")
+    single = TD3(OBS, ACT, OutputLayout(2), config, 0)
+    group = TD3Group([TD3(OBS, ACT, OutputLayout(2), config, s) for s in (0, 1)])
+    obs, action = np.zeros((2, 3), np.float32), np.zeros((2, 2), np.float32)
+    for _ in range(8):
+        single.observe(Transition(obs[0], action[0], 1.0, obs[0], False, 0.99))
+        group.observe(obs, action, np.ones(2), obs, np.zeros(2, bool), np.full(2, 0.99))
+    seen = []
+    for learner, step in ((single, "_critic_step"), (group, "critic_step")):
+        learner.precision = "tf32"  # as a GPU's learner (refused on a CPU; here torch's setting has no effect)
+        inner = getattr(learner, step)
+        monkeypatch.setattr(learner, step, lambda *a, inner=inner: seen.append(torch.get_float32_matmul_precision())
+                            or inner(*a))
+    own = torch.get_float32_matmul_precision()
+    single.update(), group.update()
+    assert seen == ["high", "high"] and torch.get_float32_matmul_precision() == own  # own again, for acting
 
 
 def test_the_actors_squashing_keeps_a_gradient_where_bfloat16_rounds_tanh_to_one():

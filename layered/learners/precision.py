@@ -1,5 +1,5 @@
-"""The precision of a learner's updates: what `precision = "auto"` means on a device, and the region that
-computes the updates' products in it (bfloat16 under autocast, or float32 products in TF32 on a GPU)."""
+"""The precision of a learner's updates: what `precision = "auto"` means on a device, and the regions that
+compute the updates' products in it (bfloat16 under autocast; float32 products in TF32 on a GPU)."""
 
 from __future__ import annotations
 
@@ -50,19 +50,23 @@ def loaded_precision(setting: str, current: str, state: dict[str, Any]) -> str:
     return state.get("precision", current) if setting == "auto" else current
 
 
-def products(precision: str, device: torch.device, cache: bool = True) -> AbstractContextManager[Any]:
-    """The region computing the updates' products in `precision` (a resolved one); weights, optimiser
-    moments and acting stay float32. `cache=False` for a step captured as a CUDA graph, which forbids
-    autocast's cache of casts."""
-    if precision == "tf32":
-        return tf32_products()
+def autocast(precision: str, device: torch.device, cache: bool = True) -> torch.autocast:
+    """The region computing the updates' products in bfloat16 where `precision` (a resolved one) is bfloat16;
+    weights, optimiser moments and acting stay float32. `cache=False` for a step captured as a CUDA graph,
+    which forbids autocast's cache of casts."""
     return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bfloat16", cache_enabled=cache)
+
+
+def update_region(precision: str) -> AbstractContextManager[Any]:
+    """The region around a whole update (its compiled or captured steps included, which cannot change torch's
+    global settings themselves): with `tf32`, float32 products in TensorFloat-32 on the GPU (torch's float32
+    matmul precision "high"), and the process's own setting again after it, so that acting stays float32."""
+    return tf32_products() if precision == "tf32" else contextlib.nullcontext()
 
 
 @contextlib.contextmanager
 def tf32_products() -> Iterator[None]:
-    """Float32 matrix products in TensorFloat-32 on the GPU (torch's float32 matmul precision "high") while
-    the region runs, and the process's own setting again after it, so that acting stays float32."""
+    """torch's float32 matmul precision "high" (TF32 on a GPU) while the region runs, the process's after it."""
     before = torch.get_float32_matmul_precision()
     torch.set_float32_matmul_precision("high")
     try:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import itertools
 from collections.abc import Callable
-from contextlib import AbstractContextManager
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -17,7 +16,7 @@ from torch.func import functional_call
 
 from layered.buffer import Batch, ReplayBuffer, Transition
 from layered.learners.base import LEARNERS, Flag, Learner, LearnerConfig, Losses, Whole
-from layered.learners.precision import loaded_precision, products, resolve_precision
+from layered.learners.precision import autocast, loaded_precision, resolve_precision, update_region
 from layered.outputs import OutputLayout
 
 
@@ -276,6 +275,10 @@ class TD3(Learner):
     def update(self) -> Losses | None:
         if len(self.buffer) == 0:
             return None
+        with update_region(self.precision):
+            return self._update()
+
+    def _update(self) -> Losses:
         b = self.buffer.sample(self.config.batch_size, self.rng)
         # the smoothing noise is drawn here: a compiled step cannot draw from a generator
         noise = torch.randn(b.action.shape, generator=self.torch_rng, device=self.device)
@@ -327,9 +330,9 @@ class TD3(Learner):
         for targets, sources in pairs:
             torch._foreach_lerp_(targets, sources, self.config.tau)
 
-    def _precision(self) -> AbstractContextManager[Any]:
+    def _precision(self) -> torch.autocast:
         """The precision of the update's matrix products (see TD3Config.precision)."""
-        return products(self.precision, self.device)
+        return autocast(self.precision, self.device)
 
     def state_dict(self) -> dict[str, Any]:
         return {

@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from contextlib import AbstractContextManager
 from typing import Any
 
 import numpy as np
 import torch
 
 from layered.learners.graphed import GraphedStep
-from layered.learners.precision import loaded_precision, products
+from layered.learners.precision import autocast, loaded_precision, update_region
 from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, follow, masked
 from layered.learners.td3 import TD3, TD3Config, squash
 
@@ -151,11 +150,12 @@ class TD3Group:
         delayed = rows & (self.updates % self.config.policy_delay == 0)
         acting = delayed & (self.updates > self.config.critic_warmup)
         with_actor = bool(acting.any())
-        if self._graphed is None:
-            critic, actor = self._update_step(rows, acting, delayed, with_actor)
-        else:
-            self._masks.copy_(torch.from_numpy(np.stack([rows, acting, delayed]).astype(np.float32)))
-            critic, actor = self._graphed[with_actor]()
+        with update_region(self.precision):
+            if self._graphed is None:
+                critic, actor = self._update_step(rows, acting, delayed, with_actor)
+            else:
+                self._masks.copy_(torch.from_numpy(np.stack([rows, acting, delayed]).astype(np.float32)))
+                critic, actor = self._graphed[with_actor]()
         losses = {"critic": (critic, rows)}
         if actor is not None:
             losses["actor"] = (actor, acting)
@@ -253,10 +253,10 @@ class TD3Group:
         self.rng.bit_generator.state = state["rng"]
         self.precision = loaded_precision(self.config.precision, self.precision, state)
 
-    def _precision(self) -> AbstractContextManager[Any]:
+    def _precision(self) -> torch.autocast:
         """The precision of the update's matrix products (see TD3Config.precision): as a single learner's (no
         weight is cast twice in one region, so autocast's cache of casts, which a captured step forbids, is off)."""
-        return products(self.precision, self.device, cache=False)
+        return autocast(self.precision, self.device, cache=False)
 
     def seed_state_dict(self, k: int) -> dict[str, Any]:
         """Seed k's networks as a single `TD3` learner's `state_dict` holds them (the optimisers' moments
