@@ -406,6 +406,7 @@ class Group:
         """Evaluate every seed's present layers now and log its row, with its mean losses since the last."""
         results = self._evaluations(phase, evaluator, self.recipe.eval.episodes, self.recipe.eval.seed_offset)
         _read_back(losses, self.seeds, step)
+        learned = any(any(seed.state.losses.values()) for seed in self.seeds)
         for k, (seed, result) in enumerate(zip(self.seeds, results, strict=True)):
             state = seed.state
             state.curve.append((step, result))
@@ -418,7 +419,7 @@ class Group:
             if seed.events is not None:
                 seed.events.write(row)
         returns = np.array([r.return_mean for r in results])
-        bar.evaluated(step, float(returns.mean()), float(returns.std()))
+        bar.evaluated(step, float(returns.mean()), float(returns.std()), learned)
 
     def _evaluations(self, phase: Phase, evaluator: tuple[Stack, Rules, Envs], episodes: int,
                      offset: int) -> list[Any]:

@@ -1,6 +1,6 @@
 """Progress of a training phase: a live bar on a terminal; elsewhere (a log file, CI, a sweep's
 worker) one readable line per evaluation instead of carriage-return bars, with the rate since the
-last line and the time the phase has left at that rate."""
+last line and, once the phase's updates run, the time it has left at that rate."""
 
 from __future__ import annotations
 
@@ -20,32 +20,38 @@ class Progress:
         self.bar = tqdm(total=total, initial=initial, desc=label, unit="step", disable=not enabled or self.lines,
                         dynamic_ncols=True, mininterval=1.0)
         self._since = (time.perf_counter(), initial)
+        self._learned = False  # whether the interval before the last line had updates
 
     def advance(self, steps: int) -> None:
         self.bar.update(steps)
 
-    def evaluated(self, step: int, mean: float, std: float) -> None:
+    def evaluated(self, step: int, mean: float, std: float, learned: bool) -> None:
         """Show an evaluation's mean return and its spread (over episodes, or over seeds): in the bar's
-        postfix, or as one line with the steps per second since the last and the phase's time left."""
+        postfix, or as one line with the steps per second since the last. `learned`: whether the phase's
+        layers updated since the last line; a warm-up interval (none did) is said so, and the time left is
+        estimated only from an interval that updated throughout (one after another that updated), since
+        warm-up steps are many times faster."""
         if not self.lines:
             self.bar.set_postfix_str(f"eval return {mean:.1f}")
             return
         now, (then, before) = time.perf_counter(), self._since
+        left = self.total - step if learned and self._learned else None
         print(f"{self.label}: step {step}/{self.total}, eval return {mean:.1f} ± {std:.1f}"
-              f"{pace(step - before, now - then, self.total - step)}", file=sys.stderr, flush=True)
-        self._since = (now, step)
+              f"{pace(step - before, now - then, left)}{'' if learned or step == before else ', warm-up'}",
+              file=sys.stderr, flush=True)
+        self._since, self._learned = (now, step), learned
 
     def close(self) -> None:
         self.bar.close()
 
 
-def pace(steps: int, seconds: float, left: int) -> str:
-    """", R steps/s, about T left" for `steps` taken in `seconds` with `left` still to take at that rate
-    (nothing for no steps: the phase's first line)."""
+def pace(steps: int, seconds: float, left: int | None) -> str:
+    """", R steps/s" for `steps` taken in `seconds`, and ", about T left" for `left` more steps at that rate
+    (nothing for no steps: a phase's first line; no time left for `left` None or 0)."""
     if steps <= 0 or seconds <= 0:
         return ""
     rate = steps / seconds
-    return f", {rate:.0f} steps/s" + (f", about {duration(left / rate)} left" if left > 0 else "")
+    return f", {rate:.0f} steps/s" + (f", about {duration(left / rate)} left" if left else "")
 
 
 def duration(seconds: float) -> str:

@@ -244,9 +244,10 @@ def _evaluate(run: Training, state: LoopState, phase: Phase, eval_env: LayeredEn
     run.metrics.write(row)
     if run.events is not None:
         run.events.write(row)
+    learned = any(state.losses.values())
     for stats in state.losses.values():
         stats.clear()
-    bar.evaluated(state.step, result.return_mean, result.return_std)
+    bar.evaluated(state.step, result.return_mean, result.return_std, learned)
 
 
 def _read_back_losses(state: LoopState, learners: dict[str, Learner]) -> None:
