@@ -150,8 +150,11 @@ def run_job(job: Job) -> Outcome:
 
 def run_group(jobs: Sequence[Job]) -> list[Outcome]:
     """Train the seeds of one setup (the `jobs`, which differ in their seed alone) as one group in this
-    process (`layered.group`), its output going to the setup folder's group.log. A group stopped by a
-    signal, or killed, continues from its last checkpoint when the same sweep runs again."""
+    process (`layered.group`), on this worker's share of the cores as torch threads, its output going to the
+    setup folder's group.log. A group stopped by a signal, or killed, continues from its last checkpoint when
+    the same sweep runs again."""
+    import torch
+
     from layered.group import train_group
     from layered.group_state import has_group_checkpoint
     from layered.interrupt import Stopped
@@ -161,6 +164,7 @@ def run_group(jobs: Sequence[Job]) -> list[Outcome]:
         return [Outcome(job, "skipped", "already finished") for job in jobs]
     if _stopped():
         return [_not_started(job) for job in jobs]
+    torch.set_num_threads(usable_cores())
     load_plugins(jobs[0].plugins)
     directory = jobs[0].out.parent
     resume = has_group_checkpoint(directory)
@@ -280,8 +284,8 @@ def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tup
 
 
 def _init_worker(sweep_pid: int, stop: Any, cores: int) -> None:
-    """One torch thread per worker and its share of the `cores`, in a session of its own; and the worker
-    ends when the sweep process is gone.
+    """A worker with its share of the `cores` (a run computes on one torch thread of it, a group on all of
+    it), in a session of its own; and the worker ends when the sweep process is gone.
 
     Without the watch, killing the sweep (not its process group) would leave workers training
     on in the background, writing into run directories nobody is waiting for.
@@ -291,7 +295,7 @@ def _init_worker(sweep_pid: int, stop: Any, cores: int) -> None:
     os.setsid()
     for s in SIGNAL_NAMES:  # between runs, the sweep's signals are for runs that are not started: nothing to stop
         signal.signal(s, signal.SIG_IGN)
-    os.environ["OMP_NUM_THREADS"] = "1"
+    os.environ["OMP_NUM_THREADS"] = "1"  # for the processes it starts (a group's environment workers)
     share_cores(cores)
     threading.Thread(target=_exit_when_orphaned, args=(sweep_pid,), daemon=True).start()
 

@@ -13,7 +13,7 @@ import pytest
 
 from layered.cores import usable_cores
 from layered.env_workers import worker_count
-from layered.sweep import _init_worker, plan, process_count, tasks
+from layered.sweep import _init_worker, plan, process_count, run_group, tasks
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
@@ -127,6 +127,30 @@ def test_a_sweeps_worker_sizes_its_environments_workers_to_its_share_of_the_core
     with ProcessPoolExecutor(1, mp_context=context, initializer=_init_worker, initargs=(os.getpid(), None, 1)) as pool:
         assert pool.submit(usable_cores).result() == 1
         assert pool.submit(worker_count, "auto", 8, None).result() == 0
+
+
+def _group_threads(out: Path) -> int:
+    """The torch threads a sweep's worker gives the group of `out`'s setup (its training stood in for)."""
+    import torch
+
+    import layered.group
+
+    seen = []
+    row = {"return_mean": 0.0, "repetition": 0.0}
+    layered.group.train_group = lambda *a, **k: seen.append(torch.get_num_threads()) or [[row]]
+    run_group(plan([PENDULUM / "td3.toml"], 1, out))
+    return seen[0]
+
+
+@pytest.mark.skipif(usable_cores() < 2, reason="needs two cores")
+@pytest.mark.parametrize("share", [1, 2])
+def test_a_vectorised_sweeps_group_computes_on_its_share_of_the_cores(share, tmp_path):
+    """Not torch's default of every core, which a worker's torch had taken before it was given its share: two
+    groups of two torch threads each on two cores run several times slower than with one each."""
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(1, mp_context=context, initializer=_init_worker, initargs=(os.getpid(), None, share)
+                             ) as pool:
+        assert pool.submit(_group_threads, tmp_path).result() == share
 
 
 def _alive(pid: int) -> bool:
