@@ -20,7 +20,7 @@ class Progress:
         self.bar = tqdm(total=total, initial=initial, desc=label, unit="step", disable=not enabled or self.lines,
                         dynamic_ncols=True, mininterval=1.0)
         self._since = (time.perf_counter(), initial)
-        self._learned = False  # whether the interval before the last line had updates
+        self._learned = False  # whether the layers updated in the interval that ended at the last line
 
     def advance(self, steps: int) -> None:
         self.bar.update(steps)
