@@ -58,7 +58,9 @@ RECIPE: dict[str, Any] = {
     "learner": {"kind": "td3", "hidden": [400, 300], "batch_size": 256},
     "eval": {"episodes": 1, "fresh_episodes": 0},
 }
-RATE = re.compile(r"^(.*): step \d+/\d+, eval return .*, (\d+) steps/s$", re.MULTILINE)
+# a progress line: "<phase>: step S/T, eval return R ± D, N steps/s[, warm-up][, about T left]"
+RATE = re.compile(r"^(.*): step \d+/\d+, eval return [^,]*, (\d+) steps/s(, warm-up)?(?:, about .* left)?$",
+                  re.MULTILINE)
 ROOT = Path(__file__).resolve().parent.parent
 REALTIME_TLA = ROOT / "recipes/hopper/tla-realtime.toml"
 REALTIME_WARMUP = ["layers.slow.warmup=500", "layers.fast.warmup=1000"]  # the recipe's 10k and 20k, cut to the run
@@ -144,11 +146,12 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
 
 
 def settled_rate(log: str) -> float:
-    """The median steps/s of a run's progress lines, each phase's first interval (its warm-up, where the
-    layer acts at random without updating, and any compilation) left out."""
+    """The median steps/s of a run's progress lines, leaving out each phase's warm-up intervals (the layer
+    acts at random without updating) and its first interval with updates (which starts them, and compiles)."""
     phases: dict[str, list[int]] = {}
     for m in RATE.finditer(log):
-        phases.setdefault(m.group(1), []).append(int(m.group(2)))
+        if not m.group(3):
+            phases.setdefault(m.group(1), []).append(int(m.group(2)))
     intervals = [rate for rates in phases.values() for rate in rates[1:]]
     if not intervals:
         raise Failed("too few progress lines to measure a rate: raise --steps")
