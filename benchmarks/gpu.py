@@ -9,7 +9,7 @@ Pendulum-v1; `--hidden`, default 400-300; batch 256):
 * **sweep**: `layered sweep --jobs N --device cuda` with N seeds at once, for each N of `--jobs`,
   with `--no-mps` (the processes take turns on the GPU) and under CUDA MPS (which the sweep starts
   where it can); per-seed steps/s are read from each run's train.log (the rate between
-  evaluations, the first interval left out), and their sum is the aggregate.
+  evaluations, warm-up and the first interval with updates left out), and their sum is the aggregate.
 * **group**: `layered train --seeds K --device cuda`, K seeds as one computation in one process, for
   each K of `--groups`, its update eager and captured as CUDA graphs (`--group-modes`), its
   environments stepped in the training process or in worker processes (`--group-workers`), on the
@@ -128,7 +128,7 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
     """`layered train --seeds` with `seeds` seeds as one group, its update as `mode` (learner.compile), its
     environments stepped by `workers` processes (env.workers), of
     `recipe` (a file, with `settings`) or the benchmark's TD3 recipe; its steps/s (per seed, every seed
-    stepping at once) from the progress lines, the first interval left out, times the seeds."""
+    stepping at once) from the progress lines (as `settled_rate` reads them), times the seeds."""
     with tempfile.TemporaryDirectory() as tmp:
         if recipe is None:
             recipe = str(Path(tmp) / "td3.toml")
