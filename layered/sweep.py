@@ -1,6 +1,7 @@
 """Experiments over recipes and seeds: every (recipe, seed) pair in its own run directory.
 
-Jobs run in parallel processes with one torch thread each. A finished run (results.json) is
+Jobs run in parallel processes, each computing on its share of the cores (one torch thread where there
+are as many processes as cores; one on a Ray worker). A finished run (results.json) is
 skipped; a stopped one resumes from its last checkpoint, here or, with Ray, on whichever
 machine runs it. Ctrl-C stops every run at its next episode end with a checkpoint.
 """
@@ -117,8 +118,9 @@ def _not_started(job: Job) -> Outcome:
     return Outcome(job, "not started", "the sweep was stopped; the same sweep again starts it")
 
 
-def run_job(job: Job) -> Outcome:
-    """Train one job in this process (one torch thread), its output going to the run's train.log."""
+def run_job(job: Job, threads: int = 1) -> Outcome:
+    """Train one job in this process on `threads` torch threads (one on a Ray worker, which shares its
+    machine with other tasks), its output going to the run's train.log."""
     import torch
 
     from layered.interrupt import Stopped
@@ -128,7 +130,7 @@ def run_job(job: Job) -> Outcome:
         return Outcome(job, "skipped", "already finished")
     if _stopped():
         return _not_started(job)
-    torch.set_num_threads(1)
+    torch.set_num_threads(threads)
     load_plugins(job.plugins)
     job.out.mkdir(parents=True, exist_ok=True)
     with (job.out / "train.log").open("a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
@@ -194,7 +196,8 @@ def run_group(jobs: Sequence[Job]) -> list[Outcome]:
 
 
 def _one(task: list[Job]) -> list[Outcome]:
-    return [run_job(task[0])]
+    """A local sweep's run, on its worker's share of the cores (one where there are as many workers as cores)."""
+    return [run_job(task[0], usable_cores())]
 
 
 @dataclass
@@ -284,8 +287,8 @@ def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tup
 
 
 def _init_worker(sweep_pid: int, stop: Any, cores: int) -> None:
-    """A worker with its share of the `cores` (a run computes on one torch thread of it, a group on all of
-    it), in a session of its own; and the worker ends when the sweep process is gone.
+    """A worker with its share of the `cores`, on which its runs and groups compute, in a session of its own;
+    and the worker ends when the sweep process is gone.
 
     Without the watch, killing the sweep (not its process group) would leave workers training
     on in the background, writing into run directories nobody is waiting for.

@@ -13,7 +13,7 @@ import pytest
 
 from layered.cores import usable_cores
 from layered.env_workers import worker_count
-from layered.sweep import _init_worker, plan, process_count, run_group, tasks
+from layered.sweep import _init_worker, _one, plan, process_count, run_group, tasks
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
@@ -129,28 +129,33 @@ def test_a_sweeps_worker_sizes_its_environments_workers_to_its_share_of_the_core
         assert pool.submit(worker_count, "auto", 8, None).result() == 0
 
 
-def _group_threads(out: Path) -> int:
-    """The torch threads a sweep's worker gives the group of `out`'s setup (its training stood in for)."""
+def _threads(out: Path, vectorize: bool) -> int:
+    """The torch threads a local sweep's worker gives a run, or the group of a setup (training stood in for)."""
     import torch
 
     import layered.group
+    import layered.runs
 
     seen = []
     row = {"return_mean": 0.0, "repetition": 0.0}
     layered.group.train_group = lambda *a, **k: seen.append(torch.get_num_threads()) or [[row]]
-    run_group(plan([PENDULUM / "td3.toml"], 1, out))
+    layered.runs.train = lambda *a, **k: seen.append(torch.get_num_threads()) or [row]
+    jobs = plan([PENDULUM / "td3.toml"], 1, out)
+    run_group(jobs) if vectorize else _one(jobs)
     return seen[0]
 
 
 @pytest.mark.skipif(usable_cores() < 2, reason="needs two cores")
+@pytest.mark.parametrize("vectorize", [False, True], ids=["run", "group"])
 @pytest.mark.parametrize("share", [1, 2])
-def test_a_vectorised_sweeps_group_computes_on_its_share_of_the_cores(share, tmp_path):
-    """Not torch's default of every core, which a worker's torch had taken before it was given its share: two
-    groups of two torch threads each on two cores run several times slower than with one each."""
+def test_a_local_sweeps_runs_and_groups_compute_on_their_share_of_the_cores(share, vectorize, tmp_path):
+    """Not torch's default of every core, which a worker's torch had taken before it was given its share (two
+    groups of two torch threads each on two cores ran 2.3 times slower than with one each), nor one thread
+    where a run has more cores to itself."""
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(1, mp_context=context, initializer=_init_worker, initargs=(os.getpid(), None, share)
                              ) as pool:
-        assert pool.submit(_group_threads, tmp_path).result() == share
+        assert pool.submit(_threads, tmp_path, vectorize).result() == share
 
 
 def _alive(pid: int) -> bool:
