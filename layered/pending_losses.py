@@ -40,7 +40,7 @@ class PendingLosses:
     def read(self) -> list[tuple[dict[str, Any], Any]]:
         """Every update kept, in order, as (its losses on the host by name, its note), read off the device in
         one copy; the buffer is then empty (and keeps its size)."""
-        if self._buffer is None:
+        if self._buffer is None or not self._updates:
             return []
         values = iter(self._buffer[: self._rows].cpu().numpy())
         updates = [({name: next(values) for name in names}, note) for names, note in self._updates]
