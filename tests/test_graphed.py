@@ -213,3 +213,15 @@ def test_a_captured_group_update_is_the_eager_one_on_the_gpu():
         mine, theirs = flat_state(eager, k), flat_state(graphed, k)
         for key in mine:
             assert torch.allclose(mine[key].float(), theirs[key].float(), rtol=1e-4, atol=1e-5), f"seed {k}: {key}"
+
+
+@CUDA
+def test_a_captured_group_acts_as_the_eager_one_on_the_gpu():
+    """The actor's kernels launched by one graph give every seed the very actions eager ones give (a resumed
+    group acts eagerly for a few steps where the uninterrupted one replays)."""
+    config = TD3Config(hidden=(64, 64), device="cuda")
+    eager = TD3Group(learners([0, 1, 2], config))
+    graphed = TD3Group(learners([0, 1, 2], config.model_copy(update={"compile": "cudagraphs"})))
+    for obs in np.random.default_rng(0).normal(size=(8, 3, eager.obs_dim)).astype(np.float32):
+        assert np.array_equal(eager.act(obs, explore=False), graphed.act(obs, explore=False))
+    assert graphed._graphed_act is not None and graphed._graphed_act.captured

@@ -41,7 +41,7 @@ class ChoiceGroup:
     @torch.inference_mode()
     def choose(self, obs: np.ndarray, action: np.ndarray, epsilon: float, rng: np.random.Generator) -> np.ndarray:
         """[K] each seed's best-valued choice, or with probability `epsilon` a uniformly random one."""
-        x = torch.as_tensor(np.concatenate([obs, action], axis=1, dtype=np.float32), device=self.td3.device)
+        x = self.td3.staging.put(np.concatenate([obs, action], axis=1))
         best = self.net(x[:, None])[:, 0].argmax(dim=-1).cpu().numpy()
         if not epsilon:
             return best

@@ -12,6 +12,8 @@ import torch
 from torch import nn
 from torch.optim.adam import adam as adam_update
 
+from layered.learners.staging import Staging
+
 
 class StackedMLP(nn.Module):
     """K multilayer perceptrons of the same shape, one per seed, as `[K, in, out]` weights."""
@@ -172,17 +174,27 @@ class StackedReplay:
         self._rows = torch.empty((k, capacity, self._cuts[-1]), device=device)
         self.sizes = torch.zeros(k, dtype=torch.long, device=device)
         self._next = torch.zeros(k, dtype=torch.long, device=device)
+        self._seeds = torch.arange(k, device=device)
+        self._staging = Staging(device)
         self.stored = np.zeros(k, np.int64)  # rows added per seed, known on the host
 
     def add(self, data: np.ndarray, rows: np.ndarray | None = None) -> None:
-        """Store row `data[k]` ([K, row]) for every seed, or only for the seeds of the `rows` mask."""
-        k = np.arange(self.k) if rows is None else np.flatnonzero(rows)
-        seeds = torch.as_tensor(k, device=self._rows.device)
-        at = self._next[seeds]
-        self._rows[seeds, at] = torch.as_tensor(data[k], device=self._rows.device)
-        self._next[seeds] = (at + 1) % self.capacity
-        self.sizes[seeds] = torch.clamp(self.sizes[seeds] + 1, max=self.capacity)
-        self.stored[k] += 1
+        """Store row `data[k]` ([K, row]) for every seed, or only for the seeds of the `rows` mask. Nothing is
+        read back, so that on a GPU the host goes on at once: the mask travels with the rows, and a seed left
+        out has its next slot written over with what it holds and its counts advanced by 0."""
+        if rows is None or rows.all():
+            self._rows[self._seeds, self._next] = self._staging.put(data)
+            self._next.add_(1).remainder_(self.capacity)
+            self.sizes.add_(1).clamp_(max=self.capacity)
+            self.stored += 1
+            return
+        staged = self._staging.put(np.concatenate([data, rows[:, None]], axis=1, dtype=np.float32))
+        write = staged[:, -1] > 0
+        held = self._rows[self._seeds, self._next]
+        self._rows[self._seeds, self._next] = torch.where(write[:, None], staged[:, :-1], held)
+        self._next.add_(write).remainder_(self.capacity)
+        self.sizes.add_(write).clamp_(max=self.capacity)
+        self.stored[rows] += 1
 
     def sample(self, batch: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
         """A minibatch per seed, each field `[K, batch, width]` (garbage for a seed with nothing stored)."""

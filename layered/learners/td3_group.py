@@ -24,6 +24,7 @@ import torch
 from layered.learners.graphed import GraphedStep
 from layered.learners.precision import autocast, loaded_precision, update_region
 from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, follow, masked
+from layered.learners.staging import Staging
 from layered.learners.td3 import TD3, TD3Config, squash
 
 
@@ -90,6 +91,7 @@ class TD3Group:
         widths = (self.obs_dim, self.act_dim, 1, self.obs_dim, 1, 1)  # obs, action, reward, next, not done, discount
         self.replay = StackedReplay(self.k, self.config.buffer_size, widths, self.device)
         self.torch_rng = torch.Generator(self.device).manual_seed(seed)
+        self.staging = Staging(self.device)  # observations and masks on their way to the device
         self.rng = np.random.default_rng(seed)
         self.updates = np.zeros(self.k, np.int64)  # per seed
         # with compile = "cudagraphs": the update, with and without the actor's step, as CUDA graphs replayed on
@@ -100,6 +102,10 @@ class TD3Group:
             with_actor: GraphedStep(functools.partial(self._update_step, rows, acting, delayed, with_actor),
                                     self.device, [self.torch_rng])
             for with_actor in (False, True)}
+        # and acting, as one more graph: the actor's kernels at one launch, on observations copied in here
+        self._act_obs = torch.zeros((self.k, 1, self.obs_dim), device=self.device)
+        self._graphed_act = None if self.config.compile == "off" else GraphedStep(
+            lambda: self.actions(self._act_obs, self.actor)[:, 0], self.device)
 
     def actions(self, obs: torch.Tensor, net: StackedMLP, seeds: torch.Tensor | None = None) -> torch.Tensor:
         """`net`'s actions for `obs` ([K, batch, obs], or those of `seeds`), squashed into the action bounds as the
@@ -110,8 +116,12 @@ class TD3Group:
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         """Each seed's action for its observation (`obs`: [K, obs] -> [K, action]); with `explore`,
         Gaussian noise of `exploration_noise` times the half-range, clipped to the bounds."""
-        x = torch.as_tensor(np.asarray(obs, np.float32), device=self.device)[:, None]
-        action = self.actions(x, self.actor)[:, 0].cpu().numpy()
+        x = self.staging.put(obs)[:, None]
+        if self._graphed_act is None:
+            action = self.actions(x, self.actor)[:, 0].cpu().numpy()
+        else:
+            self._act_obs.copy_(x)
+            action = self._graphed_act().cpu().numpy()
         if explore:
             low, high = self.action_space.low, self.action_space.high
             noise = self.rng.normal(0.0, self.config.exploration_noise, action.shape) * (high - low) / 2
@@ -154,7 +164,7 @@ class TD3Group:
             if self._graphed is None:
                 critic, actor = self._update_step(rows, acting, delayed, with_actor)
             else:
-                self._masks.copy_(torch.from_numpy(np.stack([rows, acting, delayed]).astype(np.float32)))
+                self._masks.copy_(self.staging.put(np.stack([rows, acting, delayed])))
                 critic, actor = self._graphed[with_actor]()
         losses = {"critic": (critic, rows)}
         if actor is not None:

@@ -1,0 +1,63 @@
+"""A group's replay buffers: rows stored per seed under a mask, counted and wrapped per seed, on the CPU and
+(where there is one) through page-locked staging on a GPU, with the same contents."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from layered.learners.stacked import StackedReplay
+from layered.learners.staging import Staging
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+
+
+def filled(device: str) -> StackedReplay:
+    """Three seeds, two slots each, rows of widths (1, 2); five adds, traced by hand below."""
+    replay = StackedReplay(3, 2, (1, 2), torch.device(device))
+    for t, rows in enumerate([None, np.array([True, False, True]), np.array([False, False, False]),
+                              np.array([True, False, False]), np.ones(3, bool)]):
+        replay.add(np.array([[10 * t + k, t, -k] for k in range(3)], np.float32), rows)
+    return replay
+
+
+def test_a_masked_add_stores_and_counts_only_the_seeds_it_names():
+    replay = filled("cpu")
+    # seed 0 stored at t = 0, 1, 3, 4: slots 0 1 0 1 -> [30, 40]; seed 1 at t = 0, 4 -> [1, 41];
+    # seed 2 at t = 0, 1, 4: slots 0 1 0 -> [42, 12]
+    assert replay.stored.tolist() == [4, 2, 3]
+    assert replay.sizes.tolist() == [2, 2, 2]
+    assert replay._next.tolist() == [0, 0, 1]
+    assert replay._rows[:, :, 0].tolist() == [[30, 40], [1, 41], [42, 12]]
+    obs, rest = replay.seed_rows(2)
+    assert obs[:, 0].tolist() == [42, 12] and rest.tolist() == [[4, -2], [1, -2]]
+
+
+def test_a_seed_that_stored_nothing_has_nothing_to_sample():
+    replay = StackedReplay(2, 4, (1,), torch.device("cpu"))
+    replay.add(np.array([[5.0], [6.0]], np.float32), np.array([False, True]))
+    assert replay.sizes.tolist() == [0, 1] and replay.stored.tolist() == [0, 1]
+    (rows,) = replay.sample(8, torch.Generator().manual_seed(0))
+    assert rows[1].flatten().tolist() == [6.0] * 8
+
+
+def test_staging_on_a_cpu_hands_over_the_array_as_float32():
+    staged = Staging(torch.device("cpu")).put(np.array([[1, 2]], np.float64))
+    assert staged.dtype == torch.float32 and staged.tolist() == [[1.0, 2.0]]
+
+
+@cuda
+def test_a_replay_on_the_gpu_holds_what_one_on_the_cpu_holds():
+    on_gpu, on_cpu = filled("cuda"), filled("cpu")
+    for name in ("_rows", "sizes", "_next"):
+        assert torch.equal(getattr(on_gpu, name).cpu(), getattr(on_cpu, name))
+
+
+@cuda
+def test_staged_arrays_arrive_in_order_though_they_share_one_buffer():
+    staging, device = Staging(torch.device("cuda")), torch.device("cuda")
+    total = torch.zeros(4, device=device)
+    for t in range(50):
+        total += staging.put(np.full(4, t, np.float32))  # queued behind the copy, before the next one
+    assert total.tolist() == [sum(range(50))] * 4
