@@ -23,9 +23,16 @@ H100), `--target-seeds` (32) TD3 seeds of Hopper-v5 as one group (20,000 aggrega
 many seeds of the real-time Hopper TLA recipe (10,000), the groups' environments in `--group-workers`.
 A failed setting is a row that says why; the others still run.
 
+The rates of the sweep, group and targets parts are read from progress lines, and each interval between
+two lines ends with an evaluation (one episode, every `--eval-every` steps of the TD3 recipe and of the
+targets' real-time one; a sixth of a run by default): its time is in the rate, as a user's runs have it.
+LeanRL's figure has none, so to compare with it, space the evaluations out (the fourth command below).
+
     python benchmarks/gpu.py --parts targets                                  # the engine's targets, measured
     python benchmarks/gpu.py                                                  # the three parts, on the GPU
     python benchmarks/gpu.py --env HalfCheetah-v5 --hidden 256,256 --parts modes,group --groups 1
+    python benchmarks/gpu.py --env HalfCheetah-v5 --hidden 256,256 --parts group --groups 1 --group-modes cudagraphs \
+        --group-workers 0 --steps 16000 --eval-every 5000
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 1,4,16,32,64
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --group-workers 0,auto
     python benchmarks/gpu.py --parts group --groups 32 --group-recipe recipes/hopper/tla-realtime.toml \
@@ -106,12 +113,13 @@ def one_seed(device: str, mode: str, env: str, hidden: str, steps: int, warmup: 
             "wall_seconds": time.perf_counter() - start}
 
 
-def sweep(device: str, jobs: int, env: str, hidden: str, steps: int, warmup: int, mps: bool) -> dict[str, Any]:
+def sweep(device: str, jobs: int, env: str, hidden: str, steps: int, warmup: int, every: int, mps: bool
+          ) -> dict[str, Any]:
     """`layered sweep` with `jobs` seeds at once, under CUDA MPS (which the sweep starts where it can) or
     with `--no-mps`; per-seed steps/s from each run's train.log."""
     with tempfile.TemporaryDirectory() as tmp:
         recipe = Path(tmp) / "td3.toml"
-        recipe.write_text(tomli_w.dumps(td3_recipe(env, hidden, steps, warmup, max(steps // 6, 1))))
+        recipe.write_text(tomli_w.dumps(td3_recipe(env, hidden, steps, warmup, every)))
         start = time.perf_counter()
         subprocess.run([sys.executable, "-m", "layered.cli", "sweep", str(recipe), "--seeds", str(jobs), "--jobs",
                         str(jobs), "--device", device, "--out", str(Path(tmp) / "runs"),
@@ -123,16 +131,16 @@ def sweep(device: str, jobs: int, env: str, hidden: str, steps: int, warmup: int
     return {"jobs": jobs, "per_seed": rates, "aggregate": sum(rates), "wall_seconds": wall}
 
 
-def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, steps: int, warmup: int, mode: str,
-          workers: str, settings: list[str]) -> dict[str, Any]:
+def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, steps: int, warmup: int, every: int,
+          mode: str, workers: str, settings: list[str]) -> dict[str, Any]:
     """`layered train --seeds` with `seeds` seeds as one group, its update as `mode` (learner.compile), its
     environments stepped by `workers` processes (env.workers), of
-    `recipe` (a file, with `settings`) or the benchmark's TD3 recipe; its steps/s (per seed, every seed
+    `recipe` (a file, with `settings`) or the benchmark's TD3 recipe (evaluated `every` steps); its steps/s (per seed, every seed
     stepping at once) from the progress lines (as `settled_rate` reads them), times the seeds."""
     with tempfile.TemporaryDirectory() as tmp:
         if recipe is None:
             recipe = str(Path(tmp) / "td3.toml")
-            Path(recipe).write_text(tomli_w.dumps(td3_recipe(env, hidden, steps, warmup, max(steps // 6, 1))))
+            Path(recipe).write_text(tomli_w.dumps(td3_recipe(env, hidden, steps, warmup, every)))
         start = time.perf_counter()
         proc = subprocess.run([sys.executable, "-m", "layered.cli", "train", recipe, "--seeds", str(seeds),
                                "--steps", str(steps), "--device", device, "--out", str(Path(tmp) / "runs"),
@@ -187,25 +195,25 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
     for mode in args.group_modes.split(","):
         measured(one, f"group of 1, compile {mode}", 936,
                  lambda mode=mode: group(args.device, 1, None, "HalfCheetah-v5", "256,256", args.steps, args.warmup,
-                                         mode, "0", [])["aggregate"])
+                                         every(args), mode, "0", [])["aggregate"])
     for what, recipe, env, settings, needed in (
             (f"{k} TD3 seeds of Hopper-v5, 400-300, one group", None, "Hopper-v5", [], 20_000),
             (f"{k} seeds of real-time Hopper TLA (2 layers), one group", str(REALTIME_TLA), "Hopper-v5",
-             [*REALTIME_WARMUP, f"eval.every={max(args.steps // 6, 1)}", "eval.episodes=1", "eval.fresh_episodes=0"],
+             [*REALTIME_WARMUP, f"eval.every={every(args)}", "eval.episodes=1", "eval.fresh_episodes=0"],
              10_000)):
         for mode in args.group_modes.split(","):
             for workers in args.group_workers.split(","):
                 measured(what, f"compile {mode}, env.workers {workers}", needed,
                          lambda recipe=recipe, env=env, settings=settings, mode=mode, workers=workers: group(
-                             args.device, k, recipe, env, "400,300", args.steps, args.warmup, mode, workers,
-                             settings)["aggregate"])
+                             args.device, k, recipe, env, "400,300", args.steps, args.warmup, every(args), mode,
+                             workers, settings)["aggregate"])
     return rows
 
 
 def print_targets(args: argparse.Namespace) -> None:
     """Measure the targets, a row per setting as it ends, then the best setting of each target against it."""
     print(f"\nThe engine's targets ({args.steps} steps per run and phase, {args.warmup} random; real-time TLA with "
-          f"{', '.join(REALTIME_WARMUP)}; one evaluation episode every sixth of a run)\n", flush=True)
+          f"{', '.join(REALTIME_WARMUP)}; one evaluation episode every {every(args)} steps)\n", flush=True)
     print("| target | setting | steps/s | needed | met |\n|---|---|---|---|---|", flush=True)
     rows = targets(args)
     best: dict[str, float] = {}
@@ -226,6 +234,11 @@ def _target_row(row: tuple[str, str, float | str, float]) -> str:
     return f"| {what} | {setting} | {value:,.0f} | {needed:,.0f} | {'yes' if value >= needed else 'no'} |"
 
 
+def every(args: argparse.Namespace) -> int:
+    """Environment steps between the runs' evaluations: `--eval-every`, or a sixth of a run."""
+    return args.eval_every or max(args.steps // 6, 1)
+
+
 def _last_line(text: str) -> str:
     lines = text.strip().splitlines()
     return lines[-1] if lines else "no message"
@@ -238,6 +251,8 @@ def main() -> None:
     parser.add_argument("--jobs", default="1,4,8", help="seeds sharing the device at once, comma-separated")
     parser.add_argument("--steps", type=int, default=6000, help="environment steps per run (default 6000)")
     parser.add_argument("--warmup", type=int, default=1000, help="random steps before updates (default 1000)")
+    parser.add_argument("--eval-every", type=int,
+                        help="steps between evaluations of one episode (default a sixth of a run), in each rate's time")
     parser.add_argument("--settle", type=int, default=200, help="updates left out of the rate (default 200)")
     parser.add_argument("--groups", default="1,4,16,64", help="seeds trained as one group, comma-separated")
     parser.add_argument("--env", default="Pendulum-v1", help="the benchmark recipe's environment (e.g. Hopper-v5)")
@@ -277,7 +292,7 @@ def main() -> None:
         print("\n| seeds at once | CUDA MPS | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|---|")
         for jobs in map(int, args.jobs.split(",")):
             for mps in (False, True) if jobs > 1 else (False,):
-                row = sweep(args.device, jobs, args.env, args.hidden, args.steps, args.warmup, mps)
+                row = sweep(args.device, jobs, args.env, args.hidden, args.steps, args.warmup, every(args), mps)
                 seeds = ", ".join(f"{r:.0f}" for r in row["per_seed"])
                 print(f"| {jobs} | {'yes' if mps else 'no'} | {row['aggregate']:.0f} | {seeds} | "
                       f"{row['wall_seconds']:.1f} |", flush=True)
@@ -290,7 +305,7 @@ def main() -> None:
                 for workers in args.group_workers.split(","):
                     try:
                         row = group(args.device, k, args.group_recipe, args.env, args.hidden, args.steps,
-                                    args.warmup, mode, workers, args.set)
+                                    args.warmup, every(args), mode, workers, args.set)
                     except Failed as e:
                         print(f"| {k} | {mode} | {workers} | failed: {e} | | |", flush=True)
                         continue

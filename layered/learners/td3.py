@@ -74,7 +74,8 @@ class TD3Config(LearnerConfig):
     The first updates then wait for compilation; results match eager ones closely, not bit for bit.
     In a group (`--seeds`), `cudagraphs` captures the whole update of all its seeds (sampling, both
     critics, the actor's step, the targets) after three eager updates, as one CUDA graph with the
-    actor's step and one without, one of them replayed per update; `inductor` is refused there."""
+    actor's step and one without, one of them replayed per update, and its acting as a third (the
+    very actions eager acting gives); `inductor` is refused there."""
 
 
     def on_device(self, device: str) -> TD3Config:
