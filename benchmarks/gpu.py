@@ -134,9 +134,9 @@ def sweep(device: str, jobs: int, env: str, hidden: str, steps: int, warmup: int
 def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, steps: int, warmup: int, every: int,
           mode: str, workers: str, settings: list[str]) -> dict[str, Any]:
     """`layered train --seeds` with `seeds` seeds as one group, its update as `mode` (learner.compile), its
-    environments stepped by `workers` processes (env.workers), of
-    `recipe` (a file, with `settings`) or the benchmark's TD3 recipe (evaluated `every` steps); its steps/s (per seed, every seed
-    stepping at once) from the progress lines (as `settled_rate` reads them), times the seeds."""
+    environments stepped by `workers` processes (env.workers), of `recipe` (a file, with `settings`) or the
+    benchmark's TD3 recipe (evaluated `every` steps); its steps/s (per seed, every seed stepping at once) from
+    the progress lines (as `settled_rate` reads them), times the seeds."""
     with tempfile.TemporaryDirectory() as tmp:
         if recipe is None:
             recipe = str(Path(tmp) / "td3.toml")
