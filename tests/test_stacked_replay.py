@@ -55,7 +55,7 @@ def test_a_replay_on_the_gpu_holds_what_one_on_the_cpu_holds():
 
 
 @cuda
-def test_staged_arrays_arrive_in_order_though_they_share_one_buffer():
+def test_staged_arrays_reach_the_gpu_in_order_though_they_share_one_buffer():
     staging, device = Staging(torch.device("cuda")), torch.device("cuda")
     total = torch.zeros(4, device=device)
     for t in range(50):
