@@ -182,19 +182,17 @@ class StackedReplay:
         """Store row `data[k]` ([K, row]) for every seed, or only for the seeds of the `rows` mask. Nothing is
         read back, so that on a GPU the host goes on at once: the mask travels with the rows, and a seed left
         out has its next slot written over with what it holds and its counts advanced by 0."""
+        step: int | torch.Tensor = 1  # each seed's count advances by 1, or by its mask
         if rows is None or rows.all():
-            self._rows[self._seeds, self._next] = self._staging.put(data)
-            self._next.add_(1).remainder_(self.capacity)
-            self.sizes.add_(1).clamp_(max=self.capacity)
-            self.stored += 1
-            return
-        staged = self._staging.put(np.concatenate([data, rows[:, None]], axis=1, dtype=np.float32))
-        write = staged[:, -1] > 0
-        held = self._rows[self._seeds, self._next]
-        self._rows[self._seeds, self._next] = torch.where(write[:, None], staged[:, :-1], held)
-        self._next.add_(write).remainder_(self.capacity)
-        self.sizes.add_(write).clamp_(max=self.capacity)
-        self.stored[rows] += 1
+            new = self._staging.put(data)
+        else:
+            staged = self._staging.put(np.concatenate([data, rows[:, None]], axis=1, dtype=np.float32))
+            step = staged[:, -1] > 0
+            new = torch.where(step[:, None], staged[:, :-1], self._rows[self._seeds, self._next])
+        self._rows[self._seeds, self._next] = new
+        self._next.add_(step).remainder_(self.capacity)
+        self.sizes.add_(step).clamp_(max=self.capacity)
+        self.stored += 1 if rows is None else rows
 
     def sample(self, batch: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
         """A minibatch per seed, each field `[K, batch, width]` (garbage for a seed with nothing stored)."""
