@@ -57,15 +57,34 @@ def write_atomically(path: Path, text: str) -> None:
     _write_atomically(path, lambda f: f.write(text.encode("utf-8")))
 
 
-def save_checkpoint(path: Path, layer: str, state: dict[str, Any], keep_previous: bool = False) -> None:
-    """Write `state` (of `layer`, or `run`) to `path`; a crash mid-write leaves the old file intact.
+def save_checkpoint(path: Path, layer: str, state: dict[str, Any], keep_previous: bool = False) -> str:
+    """Write `state` (of `layer`, or `run`) to `path`; a crash mid-write leaves the old file intact. The
+    checksum of what was written (see `verified_digest`).
 
     With `keep_previous` the file it replaces is kept as `previous(path)`.
     """
     body = io.BytesIO()
     torch.save({"format_version": FORMAT_VERSION, "layer": layer, "state": state}, body)
-    header = b"%s %d %s\n" % (MAGIC, FORMAT_VERSION, hashlib.sha256(body.getbuffer()).hexdigest().encode())
-    _write_atomically(path, lambda f: f.write(header + body.getbuffer()), keep_previous)
+    digest = hashlib.sha256(body.getbuffer()).hexdigest()
+    header = b"%s %d %s\n" % (MAGIC, FORMAT_VERSION, digest.encode())
+
+    def write(f: BinaryIO) -> None:
+        f.write(header)
+        f.write(body.getbuffer())  # (not joined to the header: that would copy the whole body once more)
+
+    _write_atomically(path, write, keep_previous)
+    return digest
+
+
+def verified_digest(path: Path) -> str:
+    """The checksum in the header of the checkpoint at `path`, once its content has been checked against it."""
+    try:
+        content = path.read_bytes()
+    except OSError as e:
+        raise CheckpointError(f"{path}: cannot be read ({e.strerror or e})") from None
+    if _verified_body(path, content) is content:
+        raise CheckpointError(f"{path}: written in checkpoint format 2, which has no checksum")
+    return content.partition(b"\n")[0].split(b" ")[2].decode()
 
 
 def load_checkpoint(path: Path, layer: str) -> dict[str, Any]:
@@ -102,9 +121,11 @@ def _verified_body(path: Path, content: bytes) -> bytes:
     return body
 
 
-def load_latest(path: Path, layer: str) -> dict[str, Any] | None:
+def load_latest(path: Path, layer: str, check: Callable[[dict[str, Any]], None] | None = None
+                ) -> dict[str, Any] | None:
     """The newest readable state of `path` or, failing that, of `previous(path)`; None if neither
-    exists. Unfinished temporary files of an interrupted write are removed."""
+    exists. Unfinished temporary files of an interrupted write are removed. A state that `check`
+    refuses (raising CheckpointError: what it names elsewhere is missing or damaged) counts as unreadable."""
     for stale in path.parent.glob(f".{path.name}.*"):
         stale.unlink(missing_ok=True)
     problems = []
@@ -113,6 +134,8 @@ def load_latest(path: Path, layer: str) -> dict[str, Any] | None:
             continue
         try:
             state = load_checkpoint(candidate, layer)
+            if check is not None:
+                check(state)
         except CheckpointError as e:
             problems.append(str(e))
             continue

@@ -35,6 +35,7 @@ from layered.envs import make_env, snapshot_env
 from layered.events import EventLog
 from layered.group_eval import all_rows, evaluate_group
 from layered.group_state import (
+    REPLAY,
     GroupCheckpoint,
     Pending,
     PhaseLoop,
@@ -48,6 +49,7 @@ from layered.group_state import (
 from layered.interrupt import StopRequest, Stopped
 from layered.learner_set import build_learners, keep_start_weights, start_from_weights
 from layered.learners.choice_group import ChoiceLearnerGroup, GateTD3Group, TempoRLGroup
+from layered.learners.stacked import StackedReplay
 from layered.learners.td3 import TD3Config
 from layered.learners.td3_group import TD3Group
 from layered.logs import CsvLog
@@ -55,6 +57,7 @@ from layered.orders import Phase
 from layered.pending_losses import PendingLosses
 from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
+from layered.replay_journal import ReplayJournal
 from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
 from layered.rules import Rules
@@ -179,7 +182,8 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
                 seed.episodes.truncate(seed.state.log_sizes["episodes"])
             seeds.append(seed)
         stop = StopRequest(until="this step")
-        group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop)
+        journal = ReplayJournal(directory / REPLAY, None if saved is None else saved.replays)
+        group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop, journal)
         del singles
         try:
             with stop.installed():
@@ -217,9 +221,9 @@ class Group:
     """K seeds of a recipe training together, phase by phase, checkpointing every `checkpoint_every` steps."""
 
     def __init__(self, seeds: list[Seed], learners: dict[str, GroupLearner], max_steps: int | None, progress: bool,
-                 directory: Path, digests: list[str], stop: StopRequest) -> None:
+                 directory: Path, digests: list[str], stop: StopRequest, journal: ReplayJournal) -> None:
         self.seeds, self.learners, self.max_steps, self.progress = seeds, learners, max_steps, progress
-        self.directory, self.digests, self.stop = directory, digests, stop
+        self.directory, self.digests, self.stop, self.journal = directory, digests, stop, journal
         self.recipe = seeds[0].recipe
         self.rows = len(seeds)
         self.names = self.recipe.layer_names()
@@ -231,6 +235,7 @@ class Group:
         if saved is not None:
             for name, learner in self.learners.items():
                 learner.load_resume_state(saved.learners[name])
+            self.journal.restore(self._replays())
             torch.set_rng_state(saved.torch_rng)
         for p, phase in enumerate(phases_of(self.recipe)):
             if p < start:
@@ -369,10 +374,17 @@ class Group:
             while state.next_checkpoint <= loop.step:
                 state.next_checkpoint += interval
             state.log_sizes = {"metrics": seed.metrics.size(), "episodes": seed.episodes.size()}
+        replays = self.journal.record(self._replays())  # (the rows stored since the last checkpoint)
         save_group(self.directory, [seed.recipe.train.seed for seed in self.seeds], self.digests, self.max_steps,
                    GroupCheckpoint([seed.state for seed in self.seeds], loop, rules.state_dict(), envs.snapshots(),
                                    envs.obs, {name: g.resume_state() for name, g in self.learners.items()},
-                                   torch.get_rng_state()))
+                                   torch.get_rng_state(), replays))
+        self.journal.prune()
+
+    def _replays(self) -> dict[str, StackedReplay]:
+        """Every layer's replay buffers, by `<layer>.<part>`."""
+        return {f"{name}.{part}": replay for name, group in self.learners.items()
+                for part, replay in group.replays.items()}
 
     def _log_episodes(self, ended: np.ndarray, phase: int, loop: PhaseLoop) -> None:
         """Log the episodes that ended in the `ended` rows, and start their counts again."""

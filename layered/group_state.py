@@ -4,7 +4,9 @@ A single run checkpoints at an episode end, where no simulator state needs keepi
 their episodes at different steps, so its checkpoint holds every environment's simulator state
 (`layered.envs.snapshot_env`) beside the rules' rows, each layer's stacked learners, the phase's open
 transitions and each seed's loop state. It is one file, `group.pt`, in the group's directory (the seeds'
-run directories are its `seed<k>` folders), written atomically beside its previous one.
+run directories are its `seed<k>` folders), written atomically beside its previous one; the replay buffers'
+rows are in the directory's `replay/` folder, each checkpoint adding what was stored since the last
+(layered.replay_journal).
 """
 
 from __future__ import annotations
@@ -18,10 +20,12 @@ import numpy as np
 import torch
 
 from layered.checkpoint import CheckpointError, load_latest, previous, save_checkpoint
+from layered.replay_journal import Manifest, ReplayJournal, check_segments
 from layered.rundir import RunDirError, RunInfo, check_new_run_dir, read_run_info, steps_option
 from layered.runstate import LoopState
 
 GROUP_CHECKPOINT = "group.pt"
+REPLAY = "replay"  # the folder of the replay buffers' segments
 
 
 @dataclass
@@ -91,6 +95,7 @@ class GroupCheckpoint:
     obs: np.ndarray
     learners: dict[str, dict[str, Any]]
     torch_rng: torch.Tensor
+    replays: dict[str, Manifest]  # per replay buffer (`<layer>.<part>`), its segments
 
 
 def group_dir(run_dir: Path) -> Path | None:
@@ -125,15 +130,16 @@ def save_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
         "loop": {"step": loop.step, "pending": {str(i): _tensors(asdict(p)) for i, p in loop.pending.items()},
                  "returns": _tensors(loop.returns), "lengths": _tensors(loop.lengths)},
         "rules": _tensors(checkpoint.rules), "envs": checkpoint.envs, "obs": _tensors(checkpoint.obs),
-        "learners": checkpoint.learners, "torch_rng": checkpoint.torch_rng,
+        "learners": checkpoint.learners, "torch_rng": checkpoint.torch_rng, "replays": checkpoint.replays,
     }, keep_previous=True)
 
 
 def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps: int | None
                ) -> GroupCheckpoint | None:
-    """The group's newest usable checkpoint, or None if it has none; refused, in one line, when it was
-    taken for other seeds, recipes or `--steps`."""
-    saved = load_latest(directory / GROUP_CHECKPOINT, "group")
+    """The group's newest usable checkpoint (one whose replay segments are all there, undamaged), or None if it
+    has none; refused, in one line, when it was taken for other seeds, recipes or `--steps`."""
+    saved = load_latest(directory / GROUP_CHECKPOINT, "group",
+                        lambda saved: check_segments(directory / REPLAY, saved["replays"]))
     if saved is None:
         return None
     if saved["seeds"] != list(seeds):
@@ -155,7 +161,8 @@ def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
     return GroupCheckpoint(states, PhaseLoop(int(loop["step"]), pending, _arrays(loop["returns"]),
                                              _arrays(loop["lengths"])),
                            _arrays(saved["rules"]), saved["envs"], _arrays(saved["obs"]), saved["learners"],
-                           saved["torch_rng"])
+                           saved["torch_rng"], saved["replays"])
+
 
 
 def _tensors(tree: Any) -> Any:
@@ -199,3 +206,4 @@ def clear_group(directory: Path) -> None:
     """Remove a group's checkpoints (a group starting over, or one whose seeds have all written their results)."""
     for path in (directory / GROUP_CHECKPOINT, previous(directory / GROUP_CHECKPOINT)):
         path.unlink(missing_ok=True)
+    ReplayJournal(directory / REPLAY).clear()

@@ -84,12 +84,11 @@ class ChoiceGroup:
         self.opt.load_seed_state(k, state["opt"])
 
     def resume_state(self) -> dict[str, Any]:
-        return {"net": self.net.state_dict(), "opt": self.opt.state_dict(), "replay": self.replay.state_dict()}
+        return {"net": self.net.state_dict(), "opt": self.opt.state_dict()}  # (its replay: see `replays`)
 
     def load_resume_state(self, state: dict[str, Any]) -> None:
         self.net.load_state_dict(state["net"])
         self.opt.load_state_dict(state["opt"])
-        self.replay.load_state_dict(state["replay"])
 
 
 class ChoiceLearnerGroup(ABC):
@@ -140,6 +139,11 @@ class ChoiceLearnerGroup(ABC):
     def load_seed_state_dict(self, k: int, state: dict[str, Any]) -> None:
         self.td3.load_seed_state_dict(k, state["td3"])
         self.choice.load_seed_state_dict(k, state["choice"])
+
+    @property
+    def replays(self) -> dict[str, StackedReplay]:
+        """The replay buffers, which a group's checkpoint keeps apart from `resume_state` (layered.replay_journal)."""
+        return {"td3": self.td3.replay, "choice": self.choice.replay}
 
     def resume_state(self) -> dict[str, Any]:
         return {"td3": self.td3.resume_state(), "choice": self.choice.resume_state(),

@@ -4,7 +4,7 @@ each stacked along a leading seed axis so that one operation serves every seed a
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -206,17 +206,31 @@ class StackedReplay:
         rows = self._rows[k, : int(self.sizes[k])].cpu().numpy()
         return [rows[:, a:b] for a, b in zip(self._cuts, self._cuts[1:], strict=False)]
 
-    def state_dict(self) -> dict[str, torch.Tensor]:
-        """The filled part of every seed's buffer and its counts, for resuming a group."""
-        return {"rows": self._rows[:, : int(self.sizes.max())].cpu().clone(), "sizes": self.sizes.cpu().clone(),
-                "next": self._next.cpu().clone(), "stored": torch.from_numpy(self.stored.copy())}
+    def rows_since(self, since: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
+        """The rows each seed stored after its first `since[k]` that the ring still holds, seed after seed in
+        the order stored, on the CPU; and the index among its stored rows of each seed's first one. What a
+        group's checkpoint writes of its replay (layered.replay_journal): only what is new."""
+        first = np.maximum(since, self.stored - self.capacity)
+        seeds, slots = self._slots(first, self.stored - first)
+        return self._rows[seeds, slots].cpu(), first
 
-    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        """Restore what `state_dict` returned."""
-        self._rows[:, : state["rows"].shape[1]] = state["rows"].to(self._rows.device)
-        self.sizes.copy_(state["sizes"])
-        self._next.copy_(state["next"])
-        self.stored[:] = state["stored"].numpy()
+    def restore(self, stored: np.ndarray, segments: Iterable[tuple[torch.Tensor, np.ndarray, np.ndarray]]) -> None:
+        """Refill the buffer from `rows_since`'s outputs, each as (rows, first, counts per seed), in the order they
+        were taken (a later row takes the slot of an earlier one it overwrote), and set the counts to `stored`."""
+        for rows, first, counts in segments:
+            seeds, slots = self._slots(first, counts)
+            self._rows[seeds, slots] = rows.to(self._rows.device)
+        self.stored[:] = stored
+        self.sizes.copy_(torch.from_numpy(np.minimum(stored, self.capacity)))
+        self._next.copy_(torch.from_numpy(stored % self.capacity))
+
+    def _slots(self, first: np.ndarray, counts: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """Seed and ring slot of the stored rows `first[k]` to `first[k] + counts[k]` of each seed, seed after seed."""
+        seeds = np.repeat(np.arange(self.k), counts)
+        offsets = np.cumsum(counts) - counts  # where each seed's rows start in the list
+        slots = (np.arange(int(counts.sum())) + np.repeat(first - offsets, counts)) % self.capacity
+        device = self._rows.device
+        return torch.from_numpy(seeds).to(device), torch.from_numpy(slots).to(device)
 
 
 def masked(rows: np.ndarray, device: torch.device) -> torch.Tensor:

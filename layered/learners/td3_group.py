@@ -242,12 +242,16 @@ class TD3Group:
 
     NETS = ("actor", "q1", "q2", "actor_target", "q1_target", "q2_target")
 
+    @property
+    def replays(self) -> dict[str, StackedReplay]:
+        """The replay buffer, which a group's checkpoint keeps apart from `resume_state` (layered.replay_journal)."""
+        return {"td3": self.replay}
+
     def resume_state(self) -> dict[str, Any]:
-        """Everything the group's later actions and updates depend on: networks, moments, each seed's
-        stored transitions and counts, and the generators; `load_resume_state` continues from it exactly."""
+        """Everything the group's later actions and updates depend on but its replay (see `replays`): networks,
+        moments, counts and generators; `load_resume_state` continues from it exactly."""
         return {"nets": {name: getattr(self, name).state_dict() for name in self.NETS},
                 "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
-                "replay": self.replay.state_dict(),
                 "updates": torch.from_numpy(self.updates.copy()), "torch_rng": self.torch_rng.get_state(),
                 "rng": self.rng.bit_generator.state, "precision": self.precision}
 
@@ -257,7 +261,6 @@ class TD3Group:
             getattr(self, name).load_state_dict(state["nets"][name])
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
-        self.replay.load_state_dict(state["replay"])
         self.updates[:] = state["updates"].numpy()
         self.torch_rng.set_state(state["torch_rng"])
         self.rng.bit_generator.state = state["rng"]
