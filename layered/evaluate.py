@@ -24,13 +24,20 @@ def run_episode(env: LayeredEnv, learners: Mapping[str, Learner], seed: int | No
     return measure_episode(env.trace, {name: learners[name].act_macs() for name in env.possible_agents})
 
 
+def episode_seeds(seed: int, episodes: int) -> list[int]:
+    """The seeds of an evaluation's episodes, drawn from `seed`: each episode starts where it would whatever was
+    played before it (so that episodes can be played side by side, as a group does), and the episodes of
+    evaluations seeded differently do not overlap."""
+    return np.random.SeedSequence(seed).generate_state(episodes).tolist()
+
+
 def evaluate(
     env: LayeredEnv, learners: Mapping[str, Learner], episodes: int, seed: int, progress: bool = False
 ) -> Evaluation:
-    """Mean measures over `episodes` episodes; the env is seeded once, so every call sees the same starts."""
+    """Mean measures over `episodes` episodes, seeded `episode_seeds(seed, episodes)`: each call, the same starts."""
     assert env.keep_trace, "evaluation needs an env made with keep_trace=True"
-    runs = tqdm(range(episodes), desc="evaluating", unit="episode", disable=not progress)
-    return summarise([run_episode(env, learners, seed if k == 0 else None) for k in runs])
+    seeds = tqdm(episode_seeds(seed, episodes), desc="evaluating", unit="episode", disable=not progress)
+    return summarise([run_episode(env, learners, episode_seed) for episode_seed in seeds])
 
 
 def evaluate_thresholds(

@@ -80,6 +80,9 @@ GroupLearner = TD3Group | ChoiceLearnerGroup
 STACKED: dict[str, type[TD3Group] | type[ChoiceLearnerGroup]] = {"td3": TD3Group, "td3-gate": GateTD3Group,
                                                                  "temporl": TempoRLGroup}
 """The learners a group stacks over its seeds, by kind (each takes the seeds' single learners of that kind)."""
+EVAL_LANES = 10
+"""At most this many of a seed's evaluation episodes are played side by side, each in an environment of its own
+(a MuJoCo one holds about 1 MB: 640 of them for 64 seeds)."""
 
 
 @dataclass
@@ -249,19 +252,21 @@ class Group:
             for seed, row in zip(self.seeds, rows, strict=True):
                 seed.state.finish_phase(row)
 
-    def _stacks(self, phase: Phase, evaluation: bool) -> tuple[Stack, Rules, Envs]:
-        """The phase's stack (for its layers' spaces and discounts), its rules over the K rows, and K envs."""
-        envs = open_envs(self.recipe.env.id, self.rows, self.recipe.env.workers)
+    def _stacks(self, phase: Phase, evaluation: bool, lanes: int = 1) -> tuple[Stack, Rules, Envs]:
+        """The phase's stack (for its layers' spaces and discounts), its rules over `lanes` rows per seed (seed k's
+        lane l is row k * lanes + l: an evaluation plays several episodes of a seed side by side), and their envs."""
+        rows = self.rows * lanes
+        envs = open_envs(self.recipe.env.id, rows, self.recipe.env.workers)
         stack = Stack(self.recipe, envs.observation_space, envs.action_space, active=list(phase.active),
                       evaluation=evaluation)
-        rules = Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, self.rows)
+        rules = Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, rows)
         return stack, rules, envs
 
     def run_phase(self, phase: Phase, budget: int, saved: GroupCheckpoint | None = None) -> list[PhaseResult]:
         """Train `phase.learn` for `budget` base steps in every seed, the other present layers frozen, from
         the start or from where `saved` stands."""
         stack, rules, envs = self._stacks(phase, evaluation=False)
-        evaluator = self._stacks(phase, evaluation=True)
+        evaluator = self._stacks(phase, evaluation=True, lanes=min(self.recipe.eval.episodes, EVAL_LANES))
         p = self.seeds[0].state.phase
         learn = [self.names.index(name) for name in phase.learn]
         warmups = {i: self.recipe.warmup(self.names[i]) for i in learn}
@@ -435,10 +440,11 @@ class Group:
 
     def _evaluations(self, phase: Phase, evaluator: tuple[Stack, Rules, Envs], episodes: int,
                      offset: int) -> list[Any]:
-        """Each seed's evaluation of its present layers over `episodes` episodes, seeded at its seed + `offset`."""
+        """Each seed's evaluation of its present layers over `episodes` episodes seeded from its seed + `offset`, as
+        many side by side as the evaluator has lanes."""
         stack, rules, envs = evaluator
         macs = {self.names[i]: self.learners[self.names[i]].act_macs() for i in stack.active}
-        return evaluate_group(rules, envs, lambda i, obs: self.learners[self.names[i]].act(obs, explore=False), macs,
+        return evaluate_group(rules, envs, lambda i, obs: self.learners[self.names[i]].greedy(obs), macs,
                               episodes, [seed.recipe.train.seed + offset for seed in self.seeds])
 
     def _finish_phase(self, phase: Phase, results: list[PhaseResult]) -> list[dict[str, Any]]:
@@ -466,12 +472,12 @@ class Group:
 
     def _fresh(self, phase: Phase, rows: list[dict[str, Any]], label: str) -> None:
         """Add each seed's `fresh_<label>_<measure>` evaluation on `eval.fresh_episodes` episodes to its row."""
-        if not self.recipe.eval.fresh_episodes:
+        episodes = self.recipe.eval.fresh_episodes
+        if not episodes:
             return
-        evaluator = self._stacks(phase, evaluation=True)
+        evaluator = self._stacks(phase, evaluation=True, lanes=min(episodes, self.recipe.eval.episodes, EVAL_LANES))
         try:
-            results = self._evaluations(phase, evaluator, self.recipe.eval.fresh_episodes,
-                                        self.recipe.eval.fresh_seed_offset)
+            results = self._evaluations(phase, evaluator, episodes, self.recipe.eval.fresh_seed_offset)
         finally:
             evaluator[2].close()
         for row, result in zip(rows, results, strict=True):

@@ -1,5 +1,5 @@
 """Deterministic evaluation of K stacks at once, one per seed: the measures `layered.evaluate` takes of
-one stack, for every row of a batch of rules stepping K environments."""
+one stack, for each seed, from a batch of rules stepping several environments per seed."""
 
 from __future__ import annotations
 
@@ -8,16 +8,17 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from layered.env_group import Envs
-from layered.metrics import EpisodeMeasures, Evaluation, StepRecord, measure_episode, summarise
+from layered.evaluate import episode_seeds
+from layered.metrics import EpisodeMeasures, EpisodeMeter, Evaluation, summarise
 from layered.rules import Rules
 
 GroupPolicy = Callable[[int, np.ndarray], np.ndarray]
-"""Layer i's greedy outputs for every row's observation: (i, [K, obs]) -> [K, size]."""
+"""Layer i's greedy outputs for `n` observations per seed: (i, [K, n, obs]) -> [K, n, size]."""
 
 
 def all_rows(seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
-    """The observations `Rules.decide_all` hands a policy (the deciding rows' only) as one `[K, obs]` array,
-    zeros in the other rows: what a learner stacked over the K seeds takes."""
+    """The observations `Rules.decide_all` hands a policy (the deciding rows' only) as one `[rows, obs]` array,
+    zeros in the other rows: what a learner stacked over the seeds takes."""
     full = np.zeros((len(deciding), seen.shape[1]), np.float32)
     full[deciding] = seen
     return full
@@ -25,36 +26,42 @@ def all_rows(seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
 
 def evaluate_group(rules: Rules, envs: Envs, policy: GroupPolicy, macs: dict[str, int], episodes: int,
                    seeds: Sequence[int]) -> list[Evaluation]:
-    """Each row's mean measures over `episodes` episodes, its environment seeded once with `seeds[k]`
-    as `evaluate` seeds one; rows that have played theirs wait for the others."""
-    rows = rules.rows
-    names = [layer.name for layer in rules.layers]
-    traces: list[list[StepRecord]] = [[] for _ in range(rows)]
-    measured: list[list[EpisodeMeasures]] = [[] for _ in range(rows)]
-    live = np.ones(rows, bool)
-    envs.reset(live, list(seeds))
-    rules.reset()
+    """Each seed's mean measures over `episodes` episodes seeded as `evaluate` seeds them (`episode_seeds`),
+    played side by side: the rules and environments hold `lanes` rows per seed (seed k's lane l is row
+    k * lanes + l), lane l playing the seed's episodes l, l + lanes, ...; lanes that have played theirs wait."""
+    rows, present = rules.rows, list(rules.active)
+    lanes = rows // len(seeds)
+    assert lanes * len(seeds) == rows, "an evaluator holds as many rows for every seed"
+    starts = [episode_seeds(seed, episodes) for seed in seeds]
+    meter = EpisodeMeter(rows, [rules.layers[i].name for i in present], macs)
+    measured: list[dict[int, EpisodeMeasures]] = [{} for _ in seeds]
+    episode = np.arange(rows) % lanes  # the episode each row plays
+    live = episode < episodes
+
+    def start(again: np.ndarray) -> None:
+        envs.reset(again, [starts[r // lanes][episode[r]] if again[r] else None for r in range(rows)])
+        rules.reset(again)
 
     def act(i: int, seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
-        return policy(i, all_rows(seen, deciding))[deciding]
+        outputs = policy(i, all_rows(seen, deciding).reshape(len(seeds), lanes, -1))
+        return outputs.reshape(rows, -1)[deciding]
 
+    start(live)
     while live.any():
         decided = rules.decide_all(envs.obs, act)
         composition = rules.compose()
-        before = envs.obs.copy()
         reward, terminated, truncated = envs.step(composition.action, live)
         rules.tick(live)
-        for k in np.flatnonzero(live):
-            traces[k].append(StepRecord(
-                composition.action[k].copy(), float(reward[k]), tuple(names[i] for i, m in decided.items() if m[k]),
-                {names[i]: composition.contributions[i][k].copy() for i in rules.active if composition.reached[i][k]},
-                before[k]))
+        deciding, sizes = np.zeros((rows, len(present)), bool), np.zeros((rows, len(present)))
+        for j, i in enumerate(present):  # and each layer's mean |contribution| where reached (`StepRecord.size`)
+            deciding[:, j] = decided[i]
+            sizes[:, j] = np.where(composition.reached[i], np.abs(composition.contributions[i]).mean(axis=1), 0.0)
+        meter.record(live, composition.action, reward, deciding, sizes)
         ended = live & (terminated | truncated)
-        for k in np.flatnonzero(ended):
-            measured[k].append(measure_episode(traces[k], macs))
-            traces[k] = []
-        again = ended & np.array([len(m) < episodes for m in measured])
-        envs.reset(again, [None] * rows)
-        rules.reset(again)
+        for r in np.flatnonzero(ended).tolist():
+            measured[r // lanes][int(episode[r])] = meter.finish(r)
+        episode[ended] += lanes
+        again = ended & (episode < episodes)
+        start(again)
         live &= ~ended | again
-    return [summarise(m) for m in measured]
+    return [summarise([played[j] for j in range(episodes)]) for played in measured]

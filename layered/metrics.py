@@ -31,21 +31,6 @@ class StepRecord:
         return tuple(name for name in self.contributions if self.size(name) > 0)
 
 
-def action_repetition(actions: Sequence[np.ndarray]) -> float:
-    """Share of steps whose executed action equals the previous step's exactly (the first never does)."""
-    if not actions:
-        return 0.0
-    repeats = sum(bool(np.array_equal(a, b)) for a, b in zip(actions[1:], actions[:-1], strict=True))
-    return repeats / len(actions)
-
-
-def jerk(actions: Sequence[np.ndarray]) -> float:
-    """Mean absolute change of the executed action between consecutive steps, over steps and dimensions."""
-    if len(actions) < 2:
-        return 0.0
-    return float(np.mean(np.abs(np.diff(np.asarray(actions, np.float64), axis=0))))
-
-
 def normalised_auc(steps: Sequence[float], returns: Sequence[float], return_range: tuple[float, float]) -> float:
     """Trapezoidal area under the evaluation curve, returns mapped to [0, 1] by (worst, best),
     divided by the training span; a single evaluation gives its normalised return."""
@@ -74,18 +59,64 @@ class EpisodeMeasures:
 
 def measure_episode(trace: Sequence[StepRecord], macs: dict[str, int]) -> EpisodeMeasures:
     """Measures of one episode from its steps; `macs` is each layer's cost of one decision."""
-    actions = [s.action for s in trace]
-    return EpisodeMeasures(
-        ret=float(sum(s.reward for s in trace)),
-        steps=len(trace),
-        repetition=action_repetition(actions),
-        jerk=jerk(actions),
-        decisions=sum(1 for s in trace if s.decided),
-        compute=sum(macs[n] for s in trace for n in s.decided),
-        decided={n: sum(n in s.decided for s in trace) for n in macs},
-        acted={n: sum(s.size(n) > 0 for s in trace) for n in macs},
-        contribution={n: float(sum(s.size(n) for s in trace)) for n in macs},
-    )
+    names = list(macs)
+    meter = EpisodeMeter(1, names, macs)
+    for s in trace:
+        meter.record(np.ones(1, bool), s.action[None], np.array([s.reward]),
+                     np.array([n in s.decided for n in names], bool)[None], np.array([s.size(n) for n in names])[None])
+    return meter.finish(0)
+
+
+class EpisodeMeter:
+    """`measure_episode`'s measures of `rows` episodes under way at once (an evaluation's rows), kept step by
+    step in arrays: a batch of episodes is measured without a loop over its rows."""
+
+    def __init__(self, rows: int, layers: Sequence[str], macs: dict[str, int]) -> None:
+        self.layers = list(layers)
+        self.macs = np.array([macs[n] for n in self.layers], np.int64)
+        width = len(self.layers)
+        self.ret, self.steps = np.zeros(rows), np.zeros(rows, np.int64)
+        self.repeats, self.change = np.zeros(rows, np.int64), np.zeros(rows)  # |a_t - a_t-1| summed over dimensions
+        self.decisions, self.compute = np.zeros(rows, np.int64), np.zeros(rows, np.int64)
+        self.decided, self.acted = np.zeros((rows, width), np.int64), np.zeros((rows, width), np.int64)
+        self.contribution = np.zeros((rows, width))
+        self.previous: np.ndarray | None = None  # each row's last executed action
+        self.dims = 0
+
+    def record(self, rows: np.ndarray, action: np.ndarray, reward: np.ndarray, decided: np.ndarray,
+               sizes: np.ndarray) -> None:
+        """One base step in the `rows` mask: the executed `action` ([rows, A]), `reward`, which layers `decided`
+        ([rows, layers]) and each layer's mean |contribution| (`StepRecord.size`, [rows, layers])."""
+        action = np.asarray(action, np.float64)
+        if self.previous is None:
+            self.previous, self.dims = np.zeros_like(action), action.shape[1]
+        later = rows & (self.steps > 0)
+        self.repeats += later & np.all(action == self.previous, axis=1)
+        self.change += np.where(later, np.abs(action - self.previous).sum(axis=1), 0.0)
+        self.previous = np.where(rows[:, None], action, self.previous)
+        self.ret += np.where(rows, reward, 0.0)
+        self.steps += rows
+        decided = decided & rows[:, None]
+        self.decisions += decided.any(axis=1)
+        self.compute += decided.astype(np.int64) @ self.macs
+        self.decided += decided
+        self.acted += (sizes > 0) & rows[:, None]
+        self.contribution += np.where(rows[:, None], sizes, 0.0)
+
+    def finish(self, row: int) -> EpisodeMeasures:
+        """The measures of the episode in `row`, which starts over."""
+        steps = int(self.steps[row])
+        measures = EpisodeMeasures(
+            ret=float(self.ret[row]), steps=steps, repetition=float(self.repeats[row] / steps) if steps else 0.0,
+            jerk=float(self.change[row] / ((steps - 1) * self.dims)) if steps > 1 else 0.0,
+            decisions=int(self.decisions[row]), compute=int(self.compute[row]),
+            decided={n: int(v) for n, v in zip(self.layers, self.decided[row], strict=True)},
+            acted={n: int(v) for n, v in zip(self.layers, self.acted[row], strict=True)},
+            contribution={n: float(v) for n, v in zip(self.layers, self.contribution[row], strict=True)})
+        for counts in (self.ret, self.steps, self.repeats, self.change, self.decisions, self.compute, self.decided,
+                       self.acted, self.contribution):
+            counts[row] = 0
+        return measures
 
 
 @dataclass(frozen=True)

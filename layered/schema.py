@@ -172,12 +172,12 @@ class EvalConfig(Section):
     episodes: Whole = Field(default=10, gt=0)
     """Deterministic episodes per evaluation."""
     seed_offset: Whole = 100
-    """The evaluation environment is seeded with train.seed plus this offset."""
+    """The evaluation episodes' seeds are drawn from train.seed plus this offset (one seed per episode)."""
     fresh_episodes: Whole = Field(default=100, ge=0)
     """At the end of each phase its final and its best weights are each evaluated on this many
     fresh episodes: the best of several evaluations overestimates, these do not. 0 skips it."""
     fresh_seed_offset: Whole = 1000
-    """The fresh episodes' environment is seeded with train.seed plus this offset."""
+    """The fresh episodes' seeds are drawn from train.seed plus this offset."""
 
 
 class LogConfig(Section):

@@ -17,7 +17,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from layered.agents import make_aec_env
-from layered.evaluate import run_episode
+from layered.evaluate import episode_seeds, run_episode
 from layered.learners import Learner
 from layered.metrics import StepRecord
 from layered.schema import Recipe
@@ -124,11 +124,11 @@ def write_videos(recipe: Recipe, learners: Mapping[str, Learner], active: list[s
     low, high = env.stack.low, env.stack.high
     fps = int(env.base.metadata.get("render_fps") or 30)
     written = []
-    for k in range(episodes):
+    for k, episode_seed in enumerate(episode_seeds(seed, episodes)):
         video = StripVideo(out_dir / f"episode-{k}.mp4", env.possible_agents, low, high, fps)
         env.watcher = video
         try:
-            measures = run_episode(env, learners, seed if k == 0 else None)
+            measures = run_episode(env, learners, episode_seed)
         finally:
             video.close()
         written.append((video.path, measures.ret))

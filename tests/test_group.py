@@ -15,6 +15,7 @@ from layered.group import Group, Seed, _stack_learners, group_recipes
 from layered.interrupt import StopRequest
 from layered.learner_set import build_learners, load_learners
 from layered.logs import CsvLog
+from layered.replay_journal import ReplayJournal
 from layered.results import EPISODE_FIELDS, metrics_fields
 from layered.rundir import RunDirError
 from layered.runs import resume
@@ -33,7 +34,8 @@ def tiny_group(recipe, seeds, tmp_path, overrides=()):
     for seed in seeds_:
         seed.metrics.start()
         seed.episodes.start()
-    group = Group(seeds_, _stack_learners(recipes, singles), None, False, tmp_path, [""] * len(recipes), StopRequest())
+    group = Group(seeds_, _stack_learners(recipes, singles), None, False, tmp_path, [""] * len(recipes), StopRequest(),
+                  ReplayJournal(tmp_path / "replay"))
     return group, recipes, singles
 
 
@@ -76,15 +78,20 @@ def test_each_seeds_transitions_are_those_its_own_stack_gives(recipe, overrides,
         env.close()
 
 
-def test_a_group_evaluates_each_seed_as_its_own_stack_would(tmp_path):
+# episodes one after the other; two at a time; more lanes than episodes; a phase with a layer not yet present
+@pytest.mark.parametrize("lanes, phase", [(1, -1), (2, -1), (4, -1), (2, 0)])
+def test_a_group_evaluates_each_seed_as_its_own_stack_would(tmp_path, lanes, phase):
     group, recipes, singles = tiny_group("pendulum/tla-c.toml", [0, 1], tmp_path)
-    evaluator = group._stacks(phases_of(recipes[0])[-1], evaluation=True)
-    together = group._evaluations(phases_of(recipes[0])[-1], evaluator, 2, 100)
+    phase = phases_of(recipes[0])[phase]
+    evaluator = group._stacks(phase, evaluation=True, lanes=lanes)
+    together = group._evaluations(phase, evaluator, 3, 100)
     for k, recipe in enumerate(recipes):
-        env = make_aec_env(recipe, evaluation=True, keep_trace=True)
-        alone = evaluate(env, singles[k], 2, recipe.train.seed + 100)
+        env = make_aec_env(recipe, active=list(phase.active), evaluation=True, keep_trace=True)
+        alone = evaluate(env, singles[k], 3, recipe.train.seed + 100)
         assert together[k].return_mean == pytest.approx(alone.return_mean, rel=1e-5)
         assert together[k].repetition == alone.repetition and together[k].decided == alone.decided
+        assert together[k].contribution == pytest.approx(alone.contribution) and together[k].jerk == pytest.approx(
+            alone.jerk)
         env.close()
 
 

@@ -5,9 +5,8 @@ import pytest
 
 from layered.metrics import (
     Evaluation,
+    EpisodeMeter,
     StepRecord,
-    action_repetition,
-    jerk,
     measure_episode,
     normalised_auc,
     summarise,
@@ -18,11 +17,16 @@ def a(*xs):
     return np.array(xs, np.float32)
 
 
+def played(actions):
+    """The measures of an episode of these executed actions (no layer named, rewards 0)."""
+    return measure_episode([StepRecord(action, 0.0, (), {}) for action in actions], {})
+
+
 def test_action_repetition_counts_exact_repeats_over_all_steps():
     actions = [a(1.0), a(1.0), a(1.0), a(0.5), a(0.5)]  # steps 2, 3 and 5 repeat
-    assert action_repetition(actions) == pytest.approx(3 / 5)
-    assert action_repetition([a(1.0, 2.0), a(1.0, 2.0001)]) == 0.0
-    assert action_repetition([]) == 0.0
+    assert played(actions).repetition == pytest.approx(3 / 5)
+    assert played([a(1.0, 2.0), a(1.0, 2.0001)]).repetition == 0.0
+    assert played([]).repetition == 0.0
 
 
 def test_normalised_auc_is_the_trapezoid_over_range_and_span():
@@ -34,9 +38,9 @@ def test_normalised_auc_is_the_trapezoid_over_range_and_span():
 
 
 def test_jerk_is_the_mean_absolute_change_over_steps_and_dimensions():
-    assert jerk([a(0.0), a(1.0), a(1.0), a(3.0)]) == pytest.approx((1 + 0 + 2) / 3)
-    assert jerk([a(0.0, 1.0), a(2.0, 0.0)]) == pytest.approx((2 + 1) / 2)
-    assert jerk([a(5.0)]) == 0.0
+    assert played([a(0.0), a(1.0), a(1.0), a(3.0)]).jerk == pytest.approx((1 + 0 + 2) / 3)
+    assert played([a(0.0, 1.0), a(2.0, 0.0)]).jerk == pytest.approx((2 + 1) / 2)
+    assert played([a(5.0)]).jerk == 0.0
 
 
 def steps(actions, rewards, decided, acted):
@@ -57,6 +61,33 @@ def test_measure_episode_counts_decisions_compute_and_activity():
     assert m.decided == {"slow": 1, "fast": 3}
     assert m.acted == {"slow": 4, "fast": 1}
     assert m.contribution == {"slow": 2.0, "fast": 0.5}
+
+
+def test_a_meter_of_several_rows_measures_each_rows_episode_as_its_own_trace_would():
+    macs = {"slow": 10, "fast": 3}
+    meter = EpisodeMeter(2, list(macs), macs)
+    # row 0 plays the episode of the test above; row 1 steps at its 2nd and 4th steps only, then again after
+    # its episode is finished (a new one, measured from nothing)
+    rows = [np.array([True, False]), np.array([True, True]), np.array([True, False]), np.array([True, True])]
+    actions, rewards = [1.0, 1.0, 0.2, 0.2], [-1.0, -2.0, -0.5, 0.0]
+    decided = [[1, 1], [0, 1], [0, 0], [0, 1]]
+    sizes = [[0.5, 0.0], [0.5, 0.0], [0.5, 0.5], [0.5, 0.0]]
+    for t in range(4):
+        meter.record(rows[t], np.array([[actions[t]], [7.0 + t]]), np.array([rewards[t], 10.0]),
+                     np.array([decided[t], [0, 1]], bool), np.array([sizes[t], [0.0, 0.25]]))
+    row0, row1 = meter.finish(0), meter.finish(1)
+    assert (row0.ret, row0.steps, row0.repetition, row0.decisions, row0.compute) == (-3.5, 4, 0.5, 3, 19)
+    assert row0.jerk == pytest.approx(0.8 / 3)
+    assert row0.decided == {"slow": 1, "fast": 3} and row0.acted == {"slow": 4, "fast": 1}
+    assert row0.contribution == {"slow": 2.0, "fast": 0.5}
+    # row 1: actions 8 then 10 (no repeat, jerk 2), two fast decisions of 3 MACs, fast acting with 0.25 twice
+    assert (row1.ret, row1.steps, row1.repetition, row1.jerk, row1.decisions, row1.compute) == (20.0, 2, 0.0, 2.0, 2, 6)
+    assert row1.decided == {"slow": 0, "fast": 2} and row1.acted == {"slow": 0, "fast": 2}
+    assert row1.contribution == {"slow": 0.0, "fast": 0.5}
+    meter.record(np.array([False, True]), np.array([[0.0], [10.0]]), np.array([0.0, 1.0]), np.zeros((2, 2), bool),
+                 np.zeros((2, 2)))
+    again = meter.finish(1)
+    assert (again.ret, again.steps, again.repetition, again.jerk) == (1.0, 1, 0.0, 0.0), "a new episode's first step"
 
 
 def test_summarise_means_returns_and_pools_activity_over_steps():

@@ -112,3 +112,16 @@ def test_a_checkpoint_whose_segment_is_missing_damaged_or_rewritten_is_refused(t
     path.unlink()
     with pytest.raises(CheckpointError, match="cannot be read"):
         check_segments(tmp_path, manifests)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_a_replay_on_the_gpu_refilled_from_its_segments_holds_what_it_held(tmp_path):
+    original, journal = StackedReplay(2, 3, (1, 1), torch.device("cuda")), ReplayJournal(tmp_path)
+    for t in range(7):
+        add(original, t, [True, t % 2 == 0])
+        if t % 3 == 2:
+            manifests = journal.record({"a.td3": original})
+    manifests = journal.record({"a.td3": original})
+    restored = StackedReplay(2, 3, (1, 1), torch.device("cuda"))
+    ReplayJournal(tmp_path, manifests).restore({"a.td3": restored})
+    assert_same_replay(original, restored)

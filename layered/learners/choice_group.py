@@ -40,13 +40,14 @@ class ChoiceGroup:
 
     @torch.inference_mode()
     def choose(self, obs: np.ndarray, action: np.ndarray, epsilon: float, rng: np.random.Generator) -> np.ndarray:
-        """[K] each seed's best-valued choice, or with probability `epsilon` a uniformly random one."""
-        x = self.td3.staging.put(np.concatenate([obs, action], axis=1))
-        best = self.net(x[:, None])[:, 0].argmax(dim=-1).cpu().numpy()
+        """Each seed's best-valued choice for each of its pairs of observation and action (`obs`, `action`:
+        [K, n, ...] -> [K, n]), or with probability `epsilon` a uniformly random one."""
+        x = self.td3.staging.put(np.concatenate([obs, action], axis=-1))
+        best = self.net(x).argmax(dim=-1).cpu().numpy()
         if not epsilon:
             return best
-        at_random = rng.random(len(best)) < epsilon
-        return np.where(at_random, rng.integers(self.n, size=len(best)), best)
+        at_random = rng.random(best.shape) < epsilon
+        return np.where(at_random, rng.integers(self.n, size=best.shape), best)
 
     def add(self, obs: np.ndarray, action: np.ndarray, choice: np.ndarray, reward: np.ndarray, next_obs: np.ndarray,
             terminated: np.ndarray, discount: np.ndarray, rows: np.ndarray | None) -> None:
@@ -108,8 +109,15 @@ class ChoiceLearnerGroup(ABC):
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         """[K, action + 1]: each seed's TD3 action and its choice (epsilon-greedy with `explore`)."""
         action = self.td3.act(obs, explore)
-        choice = self.choice.choose(obs, action, self.epsilon if explore else 0.0, self.rng)
+        choice = self.choice.choose(obs[:, None], action[:, None], self.epsilon if explore else 0.0, self.rng)[:, 0]
         return np.concatenate([action, self.values[choice][:, None]], axis=1)
+
+    def greedy(self, obs: np.ndarray) -> np.ndarray:
+        """[K, n, action + 1]: TD3's greedy actions for each seed's `n` observations ([K, n, obs]) and the best
+        choices."""
+        action = self.td3.greedy(obs)
+        choice = self.choice.choose(obs, action, 0.0, self.rng)
+        return np.concatenate([action, self.values[choice][..., None]], axis=-1)
 
     def random_action(self) -> np.ndarray:
         """[K, action + 1] warm-up outputs: TD3's warm-up actions and uniformly random choices."""

@@ -128,6 +128,12 @@ class TD3Group:
             action = np.clip(action + noise, low, high)
         return action.astype(np.float32)
 
+    @torch.inference_mode()
+    def greedy(self, obs: np.ndarray) -> np.ndarray:
+        """Each seed's actions without exploration for `n` observations of its own (`obs`: [K, n, obs] ->
+        [K, n, action]): the episodes of an evaluation, played side by side."""
+        return self.actions(self.staging.put(obs), self.actor).cpu().numpy()
+
     def act_macs(self) -> int:
         """Multiply-accumulates of one seed's action (as a single learner's `act_macs`)."""
         return sum(w.shape[1] * w.shape[2] for w in self.actor.weights)
