@@ -3,6 +3,7 @@ learner's device, so that minibatches are drawn where the networks are."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -32,8 +33,41 @@ class Batch(NamedTuple):
     discount: torch.Tensor
 
 
+def rows_since(rows: torch.Tensor, stored: np.ndarray, since: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
+    """Of K ring buffers, `rows` ([K, capacity, width]), which stored `stored[k]` rows each: the rows each stored
+    after its first `since[k]` that its ring still holds, buffer after buffer in the order stored, on the CPU; and
+    the index among its stored rows of each buffer's first one. What a checkpoint writes of a replay buffer
+    (layered.replay_journal): only what is new."""
+    first = np.maximum(since, stored - rows.shape[1])
+    buffers, index = _indices(first, stored - first)
+    slots = torch.from_numpy(index % rows.shape[1]).to(rows.device)
+    return rows[torch.from_numpy(buffers).to(rows.device), slots].cpu(), first
+
+
+def put_rows(rows: torch.Tensor, stored: np.ndarray, segments: Iterable[tuple[torch.Tensor, np.ndarray, np.ndarray]]
+             ) -> None:
+    """Refill K ring buffers, `rows`, to hold their last `stored[k]` rows from `rows_since`'s outputs, each as (rows,
+    first, counts per buffer), in the order they were taken; a row its ring has since overwritten is left out
+    (as is one a smaller ring cannot hold)."""
+    capacity = rows.shape[1]
+    for data, first, counts in segments:
+        buffers, index = _indices(first, counts)
+        kept = index >= np.repeat(stored - capacity, counts)
+        rows[torch.from_numpy(buffers[kept]).to(rows.device), torch.from_numpy(index[kept] % capacity).to(rows.device)
+             ] = data[torch.from_numpy(kept)].to(rows.device)
+
+
+def _indices(first: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Buffer k's stored rows `first[k]` to `first[k] + counts[k]`, buffer after buffer: each one's buffer and index."""
+    offsets = np.cumsum(counts) - counts  # where each buffer's rows start in the list
+    index = np.arange(int(counts.sum())) + np.repeat(first - offsets, counts)
+    return np.repeat(np.arange(len(counts)), counts), index
+
+
 class ReplayBuffer:
     """Ring buffer that overwrites its oldest transitions once full."""
+
+    k = 1  # (one buffer: what layered.replay_journal keeps of K of them)
 
     FIELDS = ("obs", "action", "reward", "next_obs", "not_done", "discount")
 
@@ -49,6 +83,7 @@ class ReplayBuffer:
         # One row per transition, so that storing one is one copy and a minibatch one gather; empty,
         # not zeros: rows are read only once written, and untouched pages then take no memory.
         self._rows = torch.empty((capacity, ends[-1]), dtype=torch.float32, device=self.device)
+        self.stored = np.zeros(1, np.int64)  # transitions added in all
 
     def add(self, t: Transition) -> None:
         """Store one transition."""
@@ -57,6 +92,7 @@ class ReplayBuffer:
         self._rows[self._next] = torch.from_numpy(row)
         self._next = (self._next + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
+        self.stored += 1
 
     def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
         """A uniform minibatch drawn with replacement (indices from `rng`, rows gathered on the device)."""
@@ -67,13 +103,23 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.size
 
-    def state_dict(self) -> dict[str, torch.Tensor | int]:
-        """The stored transitions, a tensor per field, for resuming a run."""
-        stored = {key: self._rows[: self.size, self._columns[key]].cpu().clone() for key in self.FIELDS}
-        return {"size": self.size, "next": self._next, **stored}
+    def fields(self) -> dict[str, torch.Tensor]:
+        """The stored transitions, a tensor per field, in the order of their slots."""
+        return {key: self._rows[: self.size, self._columns[key]].cpu().clone() for key in self.FIELDS}
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore what `state_dict` returned."""
+    def rows_since(self, since: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
+        """`rows_since` of this one buffer: the rows stored after the first `since[0]`."""
+        return rows_since(self._rows[None], self.stored, since)
+
+    def restore(self, stored: np.ndarray, segments: Iterable[tuple[torch.Tensor, np.ndarray, np.ndarray]]) -> None:
+        """Refill the buffer from `rows_since`'s outputs (see `put_rows`) and set its counts to `stored[0]`."""
+        put_rows(self._rows[None], stored, segments)
+        self.stored[:] = stored
+        self.size, self._next = min(int(stored[0]), self.capacity), int(stored[0]) % self.capacity
+
+    def load_fields(self, state: dict[str, Any]) -> None:
+        """Restore a buffer as a checkpoint of layered 0.1.0 holds it (its fields, size and next slot)."""
         self.size, self._next = int(state["size"]), int(state["next"])
         for key in self.FIELDS:
             self._rows[: self.size, self._columns[key]] = state[key].to(self.device)
+        self.stored[:] = self.size if self.size < self.capacity else self.capacity + self._next

@@ -49,7 +49,6 @@ from layered.group_state import (
 from layered.interrupt import StopRequest, Stopped
 from layered.learner_set import build_learners, keep_start_weights, start_from_weights
 from layered.learners.choice_group import ChoiceLearnerGroup, GateTD3Group, TempoRLGroup
-from layered.learners.stacked import StackedReplay
 from layered.learners.td3 import TD3Config
 from layered.learners.td3_group import TD3Group
 from layered.logs import CsvLog
@@ -57,7 +56,7 @@ from layered.orders import Phase
 from layered.pending_losses import PendingLosses
 from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
-from layered.replay_journal import ReplayJournal
+from layered.replay_journal import ReplayJournal, replays_of
 from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
 from layered.rules import Rules
@@ -185,8 +184,8 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
                 seed.episodes.truncate(seed.state.log_sizes["episodes"])
             seeds.append(seed)
         stop = StopRequest(until="this step")
-        journal = ReplayJournal(directory / REPLAY, None if saved is None else saved.replays)
-        group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop, journal)
+        group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop,
+                      ReplayJournal(directory / REPLAY))
         del singles
         try:
             with stop.installed():
@@ -238,7 +237,7 @@ class Group:
         if saved is not None:
             for name, learner in self.learners.items():
                 learner.load_resume_state(saved.learners[name])
-            self.journal.restore(self._replays())
+            self.journal.restore(saved.replays, replays_of(self.learners))
             torch.set_rng_state(saved.torch_rng)
         for p, phase in enumerate(phases_of(self.recipe)):
             if p < start:
@@ -379,17 +378,12 @@ class Group:
             while state.next_checkpoint <= loop.step:
                 state.next_checkpoint += interval
             state.log_sizes = {"metrics": seed.metrics.size(), "episodes": seed.episodes.size()}
-        replays = self.journal.record(self._replays())  # (the rows stored since the last checkpoint)
+        replays = self.journal.record(replays_of(self.learners))  # (the rows stored since the last checkpoint)
         save_group(self.directory, [seed.recipe.train.seed for seed in self.seeds], self.digests, self.max_steps,
                    GroupCheckpoint([seed.state for seed in self.seeds], loop, rules.state_dict(), envs.snapshots(),
                                    envs.obs, {name: g.resume_state() for name, g in self.learners.items()},
                                    torch.get_rng_state(), replays))
         self.journal.prune()
-
-    def _replays(self) -> dict[str, StackedReplay]:
-        """Every layer's replay buffers, by `<layer>.<part>`."""
-        return {f"{name}.{part}": replay for name, group in self.learners.items()
-                for part, replay in group.replays.items()}
 
     def _log_episodes(self, ended: np.ndarray, phase: int, loop: PhaseLoop) -> None:
         """Log the episodes that ended in the `ended` rows, and start their counts again."""

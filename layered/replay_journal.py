@@ -1,26 +1,25 @@
-"""A group's replay buffers on disk as segments, so that a checkpoint writes what was stored since the last
-one, not the whole buffer: at the paper's 1M transitions per seed, 32 Hopper seeds hold 3.6 GB of replay,
-which a checkpoint per evaluation would otherwise write again each time.
+"""A run's replay buffers on disk as segments, so that a checkpoint writes what was stored since the last
+one, not the whole buffer: at the paper's 1M transitions per seed, one Hopper seed holds 112 MB of replay
+and a group of 32 holds 3.6 GB, which a checkpoint per evaluation would otherwise write again each time.
 
-A segment is a checkpoint file of its own (written atomically, checksummed) in the group's `replay/`
-folder. The group's checkpoint holds a manifest per buffer: its stored counts and its segments, each with
-its checksum, so that a segment rewritten after a crash is never taken for the one a checkpoint named.
-Segments whose rows the ring has all overwritten leave the manifest; files that neither the newest nor the
-previous checkpoint names are removed once the newest is written.
+A segment is a checkpoint file of its own (written atomically, checksummed) in a `replay/` folder beside
+the run's (or the group's) checkpoint, which holds a manifest per buffer: its stored counts and its
+segments, each with its checksum, so that a segment rewritten after a crash is never taken for the one a
+checkpoint named. Segments whose rows the ring has all overwritten leave the manifest; files that neither
+the newest nor the previous checkpoint names are removed once the newest is written.
 """
 
 from __future__ import annotations
 
 import shutil
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
 from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, verified_digest
-from layered.learners.stacked import StackedReplay
 
 Manifest = dict[str, Any]
 """One buffer's part of a checkpoint: `stored` (per seed), `written` (segments ever written) and `segments`
@@ -29,16 +28,39 @@ Manifest = dict[str, Any]
 SEGMENT = "replay segment"
 
 
+class Replay(Protocol):
+    """K ring buffers of rows (a single learner's buffer is one), as `layered.buffer` keeps them."""
+
+    k: int
+    capacity: int
+    stored: np.ndarray  # [K] rows stored in all
+
+    def rows_since(self, since: np.ndarray) -> tuple[Any, np.ndarray]: ...
+
+    def restore(self, stored: np.ndarray, segments: Iterable[tuple[Any, np.ndarray, np.ndarray]]) -> None: ...
+
+
+class HasReplays(Protocol):
+    """A learner (or a group's): its replay buffers by part, which checkpoints keep apart from its resume state."""
+
+    @property
+    def replays(self) -> Mapping[str, Replay]: ...
+
+
+def replays_of(learners: Mapping[str, HasReplays]) -> dict[str, Replay]:
+    """Every layer's replay buffers, by `<layer>.<part>`."""
+    return {f"{name}.{part}": replay for name, learner in learners.items() for part, replay in learner.replays.items()}
+
+
 class ReplayJournal:
-    """The segments of a group's replay buffers in `folder`, as of the checkpoint whose `manifests` it was
-    given (none: a group that has not checkpointed yet)."""
+    """The segments of a run's (or a group's) replay buffers in `folder`."""
 
-    def __init__(self, folder: Path, manifests: dict[str, Manifest] | None = None) -> None:
+    def __init__(self, folder: Path) -> None:
         self.folder = folder
-        self.manifests = dict(manifests or {})
-        self.kept = _files(self.manifests)  # what the checkpoint on disk names, the previous one after the next
+        self.manifests: dict[str, Manifest] = {}
+        self.kept: set[str] = set()  # what the checkpoint on disk names: the previous one after the next
 
-    def record(self, replays: dict[str, StackedReplay]) -> dict[str, Manifest]:
+    def record(self, replays: dict[str, Replay]) -> dict[str, Manifest]:
         """Write each buffer's rows stored since the last record as a new segment; the manifests that the
         checkpoint about to be written holds."""
         for key, replay in replays.items():
@@ -67,8 +89,10 @@ class ReplayJournal:
                 path.unlink(missing_ok=True)
         self.kept = named
 
-    def restore(self, replays: dict[str, StackedReplay]) -> None:
-        """Refill each buffer from its segments, as the manifests given at the start name them."""
+    def restore(self, manifests: dict[str, Manifest], replays: dict[str, Replay]) -> None:
+        """Refill each buffer from the segments that a checkpoint's `manifests` name; the next record goes on
+        from there."""
+        self.manifests, self.kept = dict(manifests), _files(manifests)
         for key, replay in replays.items():
             manifest = self.manifests[key]
             replay.restore(np.array(manifest["stored"], np.int64), self._segments(manifest))

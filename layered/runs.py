@@ -33,7 +33,8 @@ from layered.rundir import (
     steps_option,
     writing,
 )
-from layered.runstate import LoopState, load_state, recipe_differences, recipe_digest
+from layered.replay_journal import ReplayJournal
+from layered.runstate import LoopState, load_state, recipe_differences, recipe_digest, replay_folder
 from layered.trainer import Diverged, Training, phase_budget, phases_of, train_phases
 
 
@@ -113,8 +114,9 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
     checkpoint = out / "checkpoints" / "run.pt"
     changes = read_run_info(out).changes if resume else ()
     changed_from = recipe_digest(resolved(change.before)) if change else changes[-1]["from"] if changes else None
+    journal = ReplayJournal(replay_folder(checkpoint))
     try:
-        state = load_state(checkpoint, learners, resolved(recipe), max_steps, changed_from)
+        state = load_state(checkpoint, learners, resolved(recipe), max_steps, journal, changed_from)
     except CheckpointError:
         raise
     except (RuntimeError, KeyError, ValueError) as e:  # a changed setting the networks cannot take
@@ -131,7 +133,7 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
             "differences": list(change.differences)})
     resumed_at = None if state is None else (state.phase, state.step)
     run = Training(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
-              CsvLog(out / "episodes.csv", EPISODE_FIELDS), checkpoint, max_steps, progress, StopRequest(),
+              CsvLog(out / "episodes.csv", EPISODE_FIELDS), checkpoint, max_steps, progress, StopRequest(), journal,
               EventLog(out / "tensorboard", resumed_at) if recipe.log.tensorboard else None)
     if state is None:
         state = LoopState()

@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from layered.checkpoint import CheckpointError, load_latest, save_checkpoint
+from layered.replay_journal import ReplayJournal, check_segments, replays_of
 from layered.learners import Learner
 from layered.metrics import Evaluation
 from layered.pending_losses import PendingLosses
@@ -115,24 +116,33 @@ def recipe_differences(saved: dict[str, Any], current: dict[str, Any], prefix: s
 
 
 def save_state(path: Path, state: LoopState, learners: dict[str, Learner], resolved_recipe: dict[str, Any],
-             max_steps: int | None) -> None:
-    """Checkpoint the whole training state at an episode boundary; the previous checkpoint is kept."""
+             max_steps: int | None, journal: ReplayJournal) -> None:
+    """Checkpoint the whole training state at an episode boundary; the previous checkpoint is kept. The replay
+    buffers' new rows go to `journal`'s segments, which the checkpoint names."""
+    replays = journal.record(replays_of(learners))
     save_checkpoint(path, "run", {
         "recipe": json.dumps(resolved_recipe, sort_keys=True), "recipe_digest": recipe_digest(resolved_recipe),
         "max_steps": max_steps, "loop": state.to_json(), "best": state.best, "torch_rng": torch.get_rng_state(),
-        "learners": {name: learner.resume_state() for name, learner in learners.items()},
+        "learners": {name: learner.resume_state() for name, learner in learners.items()}, "replays": replays,
     }, keep_previous=True)
+    journal.prune()
+
+
+def replay_folder(checkpoint: Path) -> Path:
+    """Where the segments of the replay buffers of the run checkpointed at `checkpoint` are."""
+    return checkpoint.parent / "replay"
 
 
 def load_state(path: Path, learners: dict[str, Learner], resolved_recipe: dict[str, Any],
-             max_steps: int | None, changed_from: str | None = None) -> LoopState | None:
-    """Restore the newest usable checkpoint into `learners`; its loop state, or None if there is none.
+             max_steps: int | None, journal: ReplayJournal, changed_from: str | None = None) -> LoopState | None:
+    """Restore the newest usable checkpoint into `learners` (their replay buffers from `journal`'s segments); its
+    loop state, or None if there is none.
 
     Refuses, naming the difference, a checkpoint made with another recipe or another `--steps`; one
     made with the recipe whose digest is `changed_from` (the run's settings were changed since, and
     `learners` are built with the changed ones) is taken.
     """
-    saved = load_latest(path, "run")
+    saved = load_latest(path, "run", lambda saved: check_segments(journal.folder, saved.get("replays", {})))
     if saved is None:
         return None
     if saved["recipe_digest"] not in (recipe_digest(resolved_recipe), changed_from):
@@ -144,6 +154,8 @@ def load_state(path: Path, learners: dict[str, Learner], resolved_recipe: dict[s
                               f"not {steps_option(max_steps)}")
     for name, learner in learners.items():
         learner.load_resume_state(saved["learners"][name])
+    if "replays" in saved:  # (a checkpoint of layered 0.1.0 holds its buffers in the learners' states)
+        journal.restore(saved["replays"], replays_of(learners))
     torch.set_rng_state(saved["torch_rng"])
     state = LoopState.from_json(saved["loop"])
     state.best = saved["best"]

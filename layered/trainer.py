@@ -26,6 +26,7 @@ from layered.metrics import Evaluation, normalised_auc
 from layered.orders import ORDERS, Phase
 from layered.progress import Progress
 from layered.recipe import Recipe, resolved
+from layered.replay_journal import ReplayJournal
 from layered.results import mean_losses
 from layered.runstate import LoopState, save_state
 
@@ -64,12 +65,13 @@ class Training:
     max_steps: int | None
     progress: bool
     stop: StopRequest
+    journal: ReplayJournal  # the replay buffers' segments
     events: EventLog | None = None  # TensorBoard scalars, when the recipe asks for them
 
     def save(self, state: LoopState) -> None:
         """Checkpoint the whole training state, with how much of each log it covers."""
         state.log_sizes = {"metrics": self.metrics.size(), "episodes": self.episodes.size()}
-        save_state(self.checkpoint, state, self.learners, resolved(self.recipe), self.max_steps)
+        save_state(self.checkpoint, state, self.learners, resolved(self.recipe), self.max_steps, self.journal)
 
 
 def phases_of(recipe: Recipe) -> list[Phase]:

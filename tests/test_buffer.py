@@ -1,6 +1,7 @@
 """The replay buffer: what is stored is what is sampled, field by field, and it survives a state round trip."""
 
 import numpy as np
+import pytest
 import torch
 
 from layered.buffer import ReplayBuffer, Transition
@@ -32,15 +33,34 @@ def test_a_full_buffer_overwrites_its_oldest_row():
     for t in (A, B, B):
         buffer.add(t)
     assert len(buffer) == 2
-    assert buffer.state_dict()["obs"].tolist() == [[6.0, 7.0], [6.0, 7.0]]
+    assert buffer.fields()["obs"].tolist() == [[6.0, 7.0], [6.0, 7.0]]
+    assert buffer.stored.tolist() == [3]
 
 
-def test_state_round_trip_gives_the_same_minibatches():
-    buffer, copy = ReplayBuffer(2, 1, capacity=8), ReplayBuffer(2, 1, capacity=8)
+@pytest.mark.parametrize("capacity", [8, 2])  # the ring never wraps / wraps
+def test_a_buffer_refilled_from_its_new_rows_gives_the_same_minibatches(capacity):
+    buffer, copy = ReplayBuffer(2, 1, capacity=capacity), ReplayBuffer(2, 1, capacity=capacity)
+    segments = []
     for t in (A, B, A):
+        since = buffer.stored.copy()
         buffer.add(t)
-    state = buffer.state_dict()
-    assert state["size"] == 3 and state["next"] == 3 and state["reward"].tolist() == [[-3.0], [2.5], [-3.0]]
-    copy.load_state_dict(state)
+        rows, first = buffer.rows_since(since)
+        segments.append((rows, first, buffer.stored - first))
+    assert [s[0][:, 3].tolist() for s in segments] == [[-3.0], [2.5], [-3.0]]  # each step's new row, its reward
+    copy.restore(buffer.stored, segments)
+    assert (copy.size, copy._next) == (buffer.size, buffer._next)
     one, other = buffer.sample(16, np.random.default_rng(0)), copy.sample(16, np.random.default_rng(0))
     assert all(torch.equal(x, y) for x, y in zip(one, other, strict=True))
+
+
+def test_a_buffer_saved_by_layered_0_1_0_is_restored_with_its_count():
+    """Such a checkpoint held the buffer's fields with its size and next slot; the count of rows stored in all is
+    what the ring's slots say (a wrapped ring: one round plus the next slot)."""
+    for capacity, size, next_, stored in ((8, 3, 3, 3), (2, 2, 1, 3)):
+        source = ReplayBuffer(2, 1, capacity=capacity)
+        for t in (A, B, A)[:stored]:
+            source.add(t)
+        old = {"size": size, "next": next_, **source.fields()}
+        buffer = ReplayBuffer(2, 1, capacity=capacity)
+        buffer.load_fields(old)
+        assert buffer.stored.tolist() == [stored] and torch.equal(buffer._rows[:size], source._rows[:size])

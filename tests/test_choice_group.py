@@ -106,5 +106,5 @@ def test_tempo_rl_in_a_group_stores_each_seeds_periods_and_partial_repetitions_a
 def single_rows(buffer):
     """A single replay buffer's stored rows as the group lays them out: obs, action, reward, next, not done,
     discount (a skip's action holds its choice last, which the group keeps between action and reward)."""
-    state = buffer.state_dict()
-    return np.concatenate([state[key].numpy().reshape(state["size"], -1) for key in buffer.FIELDS], axis=1)
+    fields = buffer.fields()
+    return np.concatenate([fields[key].numpy().reshape(len(buffer), -1) for key in buffer.FIELDS], axis=1)

@@ -16,6 +16,7 @@ from layered.envs import FAMILIES
 from layered.learners import LEARNERS
 from layered.orders import ORDERS
 from layered.outputs import OutputLayout
+from layered.replay_journal import ReplayJournal
 from layered.runs import train
 from layered.trainer import phases_of
 
@@ -83,10 +84,14 @@ def through_a_file(state):
 
 
 @pytest.mark.parametrize("name", LEARNERS.names())
-def test_learner_resume_gives_an_identical_future(name):
+def test_learner_resume_gives_an_identical_future(name, tmp_path):
+    """What a run's checkpoint keeps of a learner, its resume state and its replay buffers' segments, is all
+    its future depends on."""
     a, b = make_learner(name, 1), make_learner(name, 2)
     behaviour(a)
+    manifests = ReplayJournal(tmp_path).record(dict(a.replays))
     b.load_resume_state(through_a_file(a.resume_state()))
+    ReplayJournal(tmp_path).restore(manifests, dict(b.replays))
     assert behaviour(a) == behaviour(b)
 
 

@@ -57,7 +57,7 @@ def test_a_replay_refilled_from_its_segments_holds_what_it_held(tmp_path, capaci
             manifests = journal.record({"layer.td3": original})
             journal.prune()
     restored = StackedReplay(3, capacity, (1, 1), torch.device("cpu"))
-    ReplayJournal(tmp_path, manifests).restore({"layer.td3": restored})
+    ReplayJournal(tmp_path).restore(manifests, {"layer.td3": restored})
     assert_same_replay(original, restored)
     batch = [replay.sample(8, torch.Generator().manual_seed(1)) for replay in (original, restored)]
     assert all(torch.equal(a, b) for a, b in zip(*batch, strict=True))
@@ -123,5 +123,5 @@ def test_a_replay_on_the_gpu_refilled_from_its_segments_holds_what_it_held(tmp_p
             manifests = journal.record({"a.td3": original})
     manifests = journal.record({"a.td3": original})
     restored = StackedReplay(2, 3, (1, 1), torch.device("cuda"))
-    ReplayJournal(tmp_path, manifests).restore({"a.td3": restored})
+    ReplayJournal(tmp_path).restore(manifests, {"a.td3": restored})
     assert_same_replay(original, restored)

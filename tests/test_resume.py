@@ -3,6 +3,7 @@ as one that never stopped; changed recipes, changed budgets and damaged checkpoi
 
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -15,7 +16,11 @@ import pytest
 from conftest import assert_same_run, kill_when, passed, stop_at_episode_end, train_until_stopped
 
 from layered import load_recipe
-from layered.checkpoint import CheckpointError, load_checkpoint, previous
+from layered.checkpoint import CheckpointError, load_checkpoint, previous, save_checkpoint
+from layered.learner_set import build_learners
+from layered.recipe import resolved
+from layered.replay_journal import ReplayJournal
+from layered.runstate import load_state, replay_folder
 from layered.interrupt import Stopped
 from layered.rundir import RunDirError, read_run_info, writer
 from layered.runs import resume, train
@@ -77,6 +82,39 @@ def test_a_damaged_checkpoint_falls_back_to_the_previous_one(tmp_path, monkeypat
     assert "using the previous checkpoint run.prev.pt" in capsys.readouterr().err
     assert_same_run(tmp_path / "whole", out)
     assert not list((out / "checkpoints").glob(".run.pt.*"))
+
+
+def test_a_damaged_replay_segment_falls_back_to_the_previous_checkpoint(tmp_path, monkeypatch, capsys):
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
+    train(recipe, tmp_path / "whole", max_steps=700, progress=False, label="x")
+    out = tmp_path / "run"
+    train_until_stopped(monkeypatch, recipe, out, 3, max_steps=700, progress=False, label="x")
+    newest = load_checkpoint(out / "checkpoints" / "run.pt", "run")["replays"]["slow.td3"]["segments"][-1]
+    segment = out / "checkpoints" / "replay" / newest["file"]
+    segment.write_bytes(segment.read_bytes()[:-3])
+    resume(out, progress=False)
+    assert "using the previous checkpoint run.prev.pt" in capsys.readouterr().err
+    assert_same_run(tmp_path / "whole", out)
+
+
+def test_a_run_stopped_by_layered_0_1_0_resumes_with_the_buffers_its_checkpoint_holds(tmp_path, monkeypatch):
+    """Its checkpoint held each TD3 buffer's fields in the learner's resume state and named no segments."""
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
+    train(recipe, tmp_path / "whole", max_steps=700, progress=False, label="x")
+    out = tmp_path / "run"
+    train_until_stopped(monkeypatch, recipe, out, 3, max_steps=700, progress=False, label="x")
+    checkpoint = out / "checkpoints" / "run.pt"
+    saved, learners = load_checkpoint(checkpoint, "run"), build_learners(recipe)
+    load_state(checkpoint, learners, resolved(recipe), 700, ReplayJournal(replay_folder(checkpoint)))
+    for name, learner in learners.items():
+        buffer = learner.buffer
+        saved["learners"][name]["buffer"] = {"size": buffer.size, "next": buffer._next, **buffer.fields()}
+    del saved["replays"]
+    save_checkpoint(checkpoint, "run", saved)
+    previous(checkpoint).unlink()
+    shutil.rmtree(replay_folder(checkpoint))
+    resume(out, progress=False)
+    assert_same_run(tmp_path / "whole", out)
 
 
 def test_no_usable_checkpoint_is_refused_and_nothing_changes(tmp_path, monkeypatch):

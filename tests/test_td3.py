@@ -104,7 +104,7 @@ def test_temporl_learns_from_every_period_and_every_partial_repetition():
     path = tuple((states[k + 1], float(k + 1), 1) for k in range(3))  # rewards 1, 2, 3; one discount unit each
     learner.observe(Transition(states[0], np.array([0.3, 3.0], np.float32), 6.0, states[3], True, 0.5, path))
     assert len(learner.td3.buffer) == 3 and len(learner.choice.buffer) == 6  # 3 periods; 3 + 2 + 1 segments
-    sb = learner.choice.buffer.state_dict()
+    sb = learner.choice.buffer.fields()
     rows = {(int(sb["obs"][i, 0]), int(sb["action"][i, 1])): (float(sb["reward"][i, 0]), float(sb["discount"][i, 0]),
                                                               float(sb["not_done"][i, 0])) for i in range(6)}
     # keyed by (start state, choice index = length - 1)
@@ -112,7 +112,7 @@ def test_temporl_learns_from_every_period_and_every_partial_repetition():
     assert rows[(0, 1)] == (1 + 0.5 * 2, 0.25, 1.0)
     assert rows[(1, 0)] == (2.0, 0.5, 1.0)
     assert rows[(2, 0)] == (3.0, 0.5, 0.0)
-    not_done = learner.td3.buffer.state_dict()["not_done"]
+    not_done = learner.td3.buffer.fields()["not_done"]
     assert float(not_done[2, 0]) == 0.0 and float(not_done[0, 0]) == 1.0
     action = learner.act(states[0], explore=True)
     assert space.contains(action) and action[1] in (1, 2, 3, 4)
@@ -128,9 +128,9 @@ def test_temporl_discounts_by_the_units_the_stack_gave_each_period():
     states = [np.full(3, k, np.float32) for k in range(4)]
     path = ((states[1], 1.0, 2), (states[2], 2.0, 2), (states[3], 3.0, 1))
     learner.observe(Transition(states[0], np.array([0.3, 3.0], np.float32), 6.0, states[3], True, 0.5**5, path))
-    td3 = learner.td3.buffer.state_dict()["discount"][:, 0].tolist()
+    td3 = learner.td3.buffer.fields()["discount"][:, 0].tolist()
     assert td3 == [0.25, 0.25, 0.5]  # gamma**2 per full period, gamma for the last step
-    sb = learner.choice.buffer.state_dict()
+    sb = learner.choice.buffer.fields()
     rows = {(int(sb["obs"][i, 0]), int(sb["action"][i, 1])): (float(sb["reward"][i, 0]), float(sb["discount"][i, 0]))
             for i in range(6)}
     assert rows[(0, 2)] == (1 + 0.25 * 2 + 0.0625 * 3, 0.5**5)

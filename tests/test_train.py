@@ -11,6 +11,7 @@ from conftest import stack_recipe
 from layered import load_recipe
 from layered.interrupt import StopRequest
 from layered.logs import CsvLog
+from layered.replay_journal import ReplayJournal
 from layered.runstate import LoopState
 from layered.checkpoint import load_checkpoint
 from layered.learner_set import build_learners
@@ -123,7 +124,7 @@ def first_phase(recipe, out: Path, steps: int):
             (("metrics", metrics_fields(recipe)), ("episodes", EPISODE_FIELDS))]
     for log in logs:
         log.start()
-    run = Training(recipe, learners, *logs, out / "run.pt", None, False, StopRequest())
+    run = Training(recipe, learners, *logs, out / "run.pt", None, False, StopRequest(), ReplayJournal(out / "replay"))
     state, phase = LoopState(), phases_of(recipe)[0]
     state.start_phase(0, phase.learn, recipe.eval.every, recipe.eval.every)
     run_phase(run, state, phase, steps)
@@ -135,7 +136,7 @@ def test_time_limit_truncation_bootstraps_and_termination_does_not(tmp_path):
         recipe = load_recipe(stack_recipe([1], env=env_id).model_dump(), [*TINY, "train.warmup=1000"])
         learners, _ = first_phase(recipe, tmp_path / env_id, 450)
         buffer = learners["l0"].buffer
-        not_done = buffer.state_dict()["not_done"]
+        not_done = buffer.fields()["not_done"]
         assert len(buffer) >= 400  # Pendulum: two truncated episodes stored whole
         assert bool((not_done == 0).any()) is terminates
 
@@ -211,10 +212,10 @@ def test_a_fast_layer_that_learns_from_commits_stores_a_one_step_transition_at_e
     learners, state = joint_phase(tmp_path / "a", [step_discount, "layers.fast.learn_from_commits=true"])
     # 400 steps, two whole 200-step episodes: the fast layer decided at every one
     assert state.decisions["fast"] == 400 and len(learners["fast"].buffer) == 400
-    assert learners["fast"].buffer.state_dict()["discount"].unique().tolist() == [pytest.approx(0.99)]
+    assert learners["fast"].buffer.fields()["discount"].unique().tolist() == [pytest.approx(0.99)]
     learners, state = joint_phase(tmp_path / "b", [step_discount, "layers.fast.learn_from_commits=false"])
     assert state.decisions["fast"] < 400  # without: only the steps the gate deferred, some spanning commits
-    assert learners["fast"].buffer.state_dict()["discount"].min() < 0.98
+    assert learners["fast"].buffer.fields()["discount"].min() < 0.98
 
 
 def test_a_layer_makes_its_updates_after_each_decision_once_it_learns(tmp_path):

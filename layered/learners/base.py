@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
@@ -11,7 +12,7 @@ from gymnasium.spaces import Box
 from pydantic import BaseModel, ConfigDict, Field, Strict
 from torch import nn
 
-from layered.buffer import Transition
+from layered.buffer import ReplayBuffer, Transition
 from layered.outputs import OutputLayout
 from layered.registry import Registry
 
@@ -109,8 +110,15 @@ class Learner(ABC):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what `state_dict` returned."""
 
+    @property
+    def replays(self) -> Mapping[str, ReplayBuffer]:
+        """The learner's replay buffers by part (`layered.buffer.ReplayBuffer`s), which a run's checkpoint keeps
+        apart from `resume_state`, writing only what each stored since the last (`layered.replay_journal`);
+        none by default (a learner keeping its replay in `resume_state` resumes as well, at the full cost)."""
+        return {}
+
     def resume_state(self) -> dict[str, Any]:
-        """Everything needed to continue training exactly: `state_dict`, replay and random state."""
+        """Everything needed to continue training exactly but `replays`: `state_dict` and random state."""
         return {"policy": self.state_dict(), "rng": self.rng.bit_generator.state}
 
     def load_resume_state(self, state: dict[str, Any]) -> None:

@@ -143,10 +143,15 @@ class TD3WithChoice(Learner):
         self.td3.load_state_dict(state["td3"])
         self.choice.load_state_dict(state["choice"])
 
+    @property
+    def replays(self) -> dict[str, ReplayBuffer]:
+        return {"td3": self.td3.buffer, "choice": self.choice.buffer}
+
     def resume_state(self) -> dict[str, Any]:
-        return {**super().resume_state(), "td3": self.td3.resume_state(), "choices": self.choice.buffer.state_dict()}
+        return {**super().resume_state(), "td3": self.td3.resume_state()}
 
     def load_resume_state(self, state: dict[str, Any]) -> None:
         super().load_resume_state(state)
         self.td3.load_resume_state(state["td3"])
-        self.choice.buffer.load_state_dict(state["choices"])
+        if "choices" in state:  # a checkpoint of layered 0.1.0, which held the buffer
+            self.choice.buffer.load_fields(state["choices"])

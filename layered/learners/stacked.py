@@ -12,6 +12,7 @@ import torch
 from torch import nn
 from torch.optim.adam import adam as adam_update
 
+from layered.buffer import put_rows, rows_since
 from layered.learners.staging import Staging
 
 
@@ -207,30 +208,16 @@ class StackedReplay:
         return [rows[:, a:b] for a, b in zip(self._cuts, self._cuts[1:], strict=False)]
 
     def rows_since(self, since: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
-        """The rows each seed stored after its first `since[k]` that the ring still holds, seed after seed in
-        the order stored, on the CPU; and the index among its stored rows of each seed's first one. What a
-        group's checkpoint writes of its replay (layered.replay_journal): only what is new."""
-        first = np.maximum(since, self.stored - self.capacity)
-        seeds, slots = self._slots(first, self.stored - first)
-        return self._rows[seeds, slots].cpu(), first
+        """`layered.buffer.rows_since` of the K buffers: what a group's checkpoint writes of them."""
+        return rows_since(self._rows, self.stored, since)
 
     def restore(self, stored: np.ndarray, segments: Iterable[tuple[torch.Tensor, np.ndarray, np.ndarray]]) -> None:
-        """Refill the buffer from `rows_since`'s outputs, each as (rows, first, counts per seed), in the order they
-        were taken (a later row takes the slot of an earlier one it overwrote), and set the counts to `stored`."""
-        for rows, first, counts in segments:
-            seeds, slots = self._slots(first, counts)
-            self._rows[seeds, slots] = rows.to(self._rows.device)
+        """Refill the buffers from `rows_since`'s outputs (see `layered.buffer.put_rows`) and set each seed's counts
+        to `stored`."""
+        put_rows(self._rows, stored, segments)
         self.stored[:] = stored
         self.sizes.copy_(torch.from_numpy(np.minimum(stored, self.capacity)))
         self._next.copy_(torch.from_numpy(stored % self.capacity))
-
-    def _slots(self, first: np.ndarray, counts: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """Seed and ring slot of the stored rows `first[k]` to `first[k] + counts[k]` of each seed, seed after seed."""
-        seeds = np.repeat(np.arange(self.k), counts)
-        offsets = np.cumsum(counts) - counts  # where each seed's rows start in the list
-        slots = (np.arange(int(counts.sum())) + np.repeat(first - offsets, counts)) % self.capacity
-        device = self._rows.device
-        return torch.from_numpy(seeds).to(device), torch.from_numpy(slots).to(device)
 
 
 def masked(rows: np.ndarray, device: torch.device) -> torch.Tensor:

@@ -348,12 +348,14 @@ class TD3(Learner):
             "precision": self.precision,
         }
 
-    def resume_state(self) -> dict[str, Any]:
-        return {**super().resume_state(), "buffer": self.buffer.state_dict()}
+    @property
+    def replays(self) -> dict[str, ReplayBuffer]:
+        return {"td3": self.buffer}
 
     def load_resume_state(self, state: dict[str, Any]) -> None:
         super().load_resume_state(state)
-        self.buffer.load_state_dict(state["buffer"])
+        if "buffer" in state:  # a checkpoint of layered 0.1.0, which held the buffer
+            self.buffer.load_fields(state["buffer"])
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.actor.load_state_dict(state["actor"])
