@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -58,22 +58,50 @@ class EpisodeMeasures:
 
 
 def measure_episode(trace: Sequence[StepRecord], macs: dict[str, int]) -> EpisodeMeasures:
-    """Measures of one episode from its steps; `macs` is each layer's cost of one decision."""
-    names = list(macs)
-    meter = EpisodeMeter(1, names, macs)
-    for s in trace:
-        meter.record(np.ones(1, bool), s.action[None], np.array([s.reward]),
-                     np.array([n in s.decided for n in names], bool)[None], np.array([s.size(n) for n in names])[None])
-    return meter.finish(0)
+    """Measures of one episode from its steps; `macs` is each layer's cost of one decision. The sums an
+    `EpisodeMeter` keeps step by step, taken over the whole episode at once, in the order it adds them."""
+    names, steps = list(macs), len(trace)
+    actions = np.array([s.action for s in trace], np.float64).reshape(steps, -1) if trace else np.zeros((0, 0))
+    decided = np.array([[n in s.decided for n in names] for s in trace], bool).reshape(steps, len(names))
+    sizes = np.array([[s.size(n) for n in names] for s in trace], np.float64).reshape(steps, len(names))
+    return _measures(
+        names, ret=_in_order(np.array([s.reward for s in trace], np.float64)), steps=steps,
+        repeats=int(np.all(actions[1:] == actions[:-1], axis=1).sum()),
+        change=_in_order(np.abs(actions[1:] - actions[:-1]).sum(axis=1)), dims=actions.shape[1],
+        decisions=int(decided.any(axis=1).sum()), compute=int((decided.astype(np.int64) @ _costs(names, macs)).sum()),
+        decided=decided.sum(axis=0), acted=(sizes > 0).sum(axis=0), contribution=_in_order(sizes))
+
+
+def _in_order(values: np.ndarray) -> Any:
+    """The sum over the first axis, added one after another (as a meter adds a step at a time; numpy's own sum
+    adds pairwise, which rounds otherwise)."""
+    return np.add.accumulate(values, axis=0)[-1] if len(values) else np.zeros(values.shape[1:])
+
+
+def _costs(layers: Sequence[str], macs: dict[str, int]) -> np.ndarray:
+    return np.array([macs[n] for n in layers], np.int64)
+
+
+def _measures(layers: Sequence[str], ret: float, steps: int, repeats: int, change: float, dims: int, decisions: int,
+              compute: int, decided: np.ndarray, acted: np.ndarray, contribution: np.ndarray) -> EpisodeMeasures:
+    """An episode's measures from its sums: of rewards, of steps whose action repeats the previous one, of the
+    actions' absolute changes over steps and `dims` dimensions, and per layer of decisions, steps acted and
+    mean |contribution|."""
+    return EpisodeMeasures(
+        ret=float(ret), steps=steps, repetition=float(repeats / steps) if steps else 0.0,
+        jerk=float(change / ((steps - 1) * dims)) if steps > 1 else 0.0, decisions=int(decisions), compute=int(compute),
+        decided={n: int(v) for n, v in zip(layers, decided, strict=True)},
+        acted={n: int(v) for n, v in zip(layers, acted, strict=True)},
+        contribution={n: float(v) for n, v in zip(layers, contribution, strict=True)})
 
 
 class EpisodeMeter:
-    """`measure_episode`'s measures of `rows` episodes under way at once (an evaluation's rows), kept step by
+    """The measures of `rows` episodes under way at once (a group evaluation's rows), their sums kept step by
     step in arrays: a batch of episodes is measured without a loop over its rows."""
 
     def __init__(self, rows: int, layers: Sequence[str], macs: dict[str, int]) -> None:
         self.layers = list(layers)
-        self.macs = np.array([macs[n] for n in self.layers], np.int64)
+        self.macs = _costs(self.layers, macs)
         width = len(self.layers)
         self.ret, self.steps = np.zeros(rows), np.zeros(rows, np.int64)
         self.repeats, self.change = np.zeros(rows, np.int64), np.zeros(rows)  # |a_t - a_t-1| summed over dimensions
@@ -105,14 +133,9 @@ class EpisodeMeter:
 
     def finish(self, row: int) -> EpisodeMeasures:
         """The measures of the episode in `row`, which starts over."""
-        steps = int(self.steps[row])
-        measures = EpisodeMeasures(
-            ret=float(self.ret[row]), steps=steps, repetition=float(self.repeats[row] / steps) if steps else 0.0,
-            jerk=float(self.change[row] / ((steps - 1) * self.dims)) if steps > 1 else 0.0,
-            decisions=int(self.decisions[row]), compute=int(self.compute[row]),
-            decided={n: int(v) for n, v in zip(self.layers, self.decided[row], strict=True)},
-            acted={n: int(v) for n, v in zip(self.layers, self.acted[row], strict=True)},
-            contribution={n: float(v) for n, v in zip(self.layers, self.contribution[row], strict=True)})
+        measures = _measures(self.layers, self.ret[row], int(self.steps[row]), int(self.repeats[row]), self.change[row],
+                             self.dims, int(self.decisions[row]), int(self.compute[row]), self.decided[row],
+                             self.acted[row], self.contribution[row])
         for counts in (self.ret, self.steps, self.repeats, self.change, self.decisions, self.compute, self.decided,
                        self.acted, self.contribution):
             counts[row] = 0

@@ -90,6 +90,25 @@ def test_a_meter_of_several_rows_measures_each_rows_episode_as_its_own_trace_wou
     assert (again.ret, again.steps, again.repetition, again.jerk) == (1.0, 1, 0.0, 0.0), "a new episode's first step"
 
 
+def test_a_meters_rows_measure_bit_for_bit_what_measure_episode_measures_of_their_traces():
+    rng, macs = np.random.default_rng(0), {"slow": 10, "fast": 3}
+    traces = [[], [], []]
+    meter = EpisodeMeter(3, list(macs), macs)
+    for _ in range(60):
+        rows = rng.random(3) < 0.7
+        action = rng.normal(size=(3, 2)).astype(np.float32)
+        action[rng.random(3) < 0.3] = 0.5  # some steps repeat
+        reward, decided = rng.normal(size=3), rng.random((3, 2)) < 0.4
+        sizes = np.where(rng.random((3, 2)) < 0.5, np.abs(rng.normal(size=(3, 2))), 0.0)
+        meter.record(rows, action, reward, decided, sizes)
+        for k in np.flatnonzero(rows):
+            contributions = {n: np.array([sizes[k, j]]) for j, n in enumerate(macs) if sizes[k, j] > 0}
+            traces[k].append(StepRecord(action[k], float(reward[k]), tuple(n for j, n in enumerate(macs)
+                                                                             if decided[k, j]), contributions))
+    for k in range(3):
+        assert meter.finish(k) == measure_episode(traces[k], macs), f"row {k}"
+
+
 def test_summarise_means_returns_and_pools_activity_over_steps():
     e1 = measure_episode(steps([a(0.0)] * 2, [-1.0, -1.0], [("x",), ()], [("x",), ("x",)]), {"x": 7})
     e2 = measure_episode(steps([a(0.0)] * 4, [0.0] * 4, [("x",)] * 4, [()] * 4), {"x": 7})
