@@ -91,6 +91,7 @@ def main() -> None:
                               (group_module.Group, "_update", "updates"),
                               (group_module.Group, "_evaluate", "evaluations"),
                               (group_module.Group, "_fresh", "evaluations"),
+                              (group_module.Group, "_evaluator", "evaluations"),
                               (group_module.Group, "_checkpoint", "checkpoints"),
                               (group_module, "save_checkpoint", "checkpoints"),
                               (group_module, "_read_back", "losses read back")):

@@ -79,9 +79,9 @@ GroupLearner = TD3Group | ChoiceLearnerGroup
 STACKED: dict[str, type[TD3Group] | type[ChoiceLearnerGroup]] = {"td3": TD3Group, "td3-gate": GateTD3Group,
                                                                  "temporl": TempoRLGroup}
 """The learners a group stacks over its seeds, by kind (each takes the seeds' single learners of that kind)."""
-EVAL_LANES = 10
-"""At most this many of a seed's evaluation episodes are played side by side, each in an environment of its own
-(a MuJoCo one holds about 1 MB: 640 of them for 64 seeds)."""
+EVAL_LANES, EVAL_ROWS = 10, 320
+"""At most this many of a seed's evaluation episodes are played side by side, each in an environment of its own,
+and at most this many environments in all (a Gymnasium MuJoCo one holds about 1 MB, a dm_control one 13 MB)."""
 
 
 @dataclass
@@ -261,11 +261,16 @@ class Group:
         rules = Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, rows)
         return stack, rules, envs
 
+    def _evaluator(self, phase: Phase, episodes: int) -> tuple[Stack, Rules, Envs]:
+        """The stacks that play `episodes` evaluation episodes per seed: as many of them side by side as
+        `EVAL_LANES` and `EVAL_ROWS` allow."""
+        return self._stacks(phase, evaluation=True, lanes=max(1, min(episodes, EVAL_LANES, EVAL_ROWS // self.rows)))
+
     def run_phase(self, phase: Phase, budget: int, saved: GroupCheckpoint | None = None) -> list[PhaseResult]:
         """Train `phase.learn` for `budget` base steps in every seed, the other present layers frozen, from
         the start or from where `saved` stands."""
         stack, rules, envs = self._stacks(phase, evaluation=False)
-        evaluator = self._stacks(phase, evaluation=True, lanes=min(self.recipe.eval.episodes, EVAL_LANES))
+        evaluator = self._evaluator(phase, self.recipe.eval.episodes)
         p = self.seeds[0].state.phase
         learn = [self.names.index(name) for name in phase.learn]
         warmups = {i: self.recipe.warmup(self.names[i]) for i in learn}
@@ -453,27 +458,30 @@ class Group:
             best_step, best = seed.state.curve[seed.state.best_index()]
             rows.append({**phase_row(result), "best_step": best_step, "best_return_mean": best.return_mean})
         final = {name: [self.learners[name].seed_state_dict(k) for k in range(self.rows)] for name in phase.learn}
-        self._fresh(phase, rows, "final")
-        for k, seed in enumerate(self.seeds):
-            for name in phase.learn:
-                self.learners[name].load_seed_state_dict(k, seed.state.best[name])
-        self._fresh(phase, rows, "best")
+        evaluator = self._evaluator(phase, self.recipe.eval.fresh_episodes) if self.recipe.eval.fresh_episodes else None
+        try:
+            self._fresh(evaluator, phase, rows, "final")
+            for k, seed in enumerate(self.seeds):
+                for name in phase.learn:
+                    self.learners[name].load_seed_state_dict(k, seed.state.best[name])
+            self._fresh(evaluator, phase, rows, "best")
+        finally:
+            if evaluator is not None:
+                evaluator[2].close()
         if self.recipe.train.select == "final":
             for name, states in final.items():
                 for k, state in enumerate(states):
                     self.learners[name].load_seed_state_dict(k, state)
         return rows
 
-    def _fresh(self, phase: Phase, rows: list[dict[str, Any]], label: str) -> None:
-        """Add each seed's `fresh_<label>_<measure>` evaluation on `eval.fresh_episodes` episodes to its row."""
-        episodes = self.recipe.eval.fresh_episodes
-        if not episodes:
+    def _fresh(self, evaluator: tuple[Stack, Rules, Envs] | None, phase: Phase, rows: list[dict[str, Any]],
+               label: str) -> None:
+        """Add each seed's `fresh_<label>_<measure>` evaluation on `eval.fresh_episodes` episodes to its row (none
+        without an evaluator: `eval.fresh_episodes` is 0)."""
+        if evaluator is None:
             return
-        evaluator = self._stacks(phase, evaluation=True, lanes=min(episodes, self.recipe.eval.episodes, EVAL_LANES))
-        try:
-            results = self._evaluations(phase, evaluator, episodes, self.recipe.eval.fresh_seed_offset)
-        finally:
-            evaluator[2].close()
+        evaluation = self.recipe.eval
+        results = self._evaluations(phase, evaluator, evaluation.fresh_episodes, evaluation.fresh_seed_offset)
         for row, result in zip(rows, results, strict=True):
             row |= {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
 

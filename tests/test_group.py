@@ -95,6 +95,17 @@ def test_a_group_evaluates_each_seed_as_its_own_stack_would(tmp_path, lanes, pha
         env.close()
 
 
+def test_an_evaluator_holds_as_many_lanes_per_seed_as_the_caps_allow(tmp_path, monkeypatch):
+    group, recipes, _ = tiny_group("pendulum/tla-c.toml", [0, 1], tmp_path)
+    phase = phases_of(recipes[0])[-1]
+    # 10 per seed; no more than the episodes; no more than the rows in all allow; at least one
+    for episodes, cap, rows in ((100, 320, 20), (3, 320, 6), (100, 7, 6), (100, 1, 2)):
+        monkeypatch.setattr("layered.group.EVAL_ROWS", cap)
+        _, rules, envs = group._evaluator(phase, episodes)
+        envs.close()
+        assert rules.rows == rows, (episodes, cap)
+
+
 def test_a_group_writes_each_seed_an_ordinary_run_directory_and_writes_it_again_the_same(tmp_path, capsys):
     recipe = str(ROOT / "recipes/pendulum/tla-c.toml")
     for out in ("a", "b"):
