@@ -73,8 +73,7 @@ class ReplayBuffer:
 
     def __init__(self, obs_dim: int, action_dim: int, capacity: int, device: torch.device | str = "cpu") -> None:
         self.capacity = capacity
-        self.size = 0
-        self._next = 0
+        self._added = 0  # transitions added in all: the slot of the next, and how many the ring holds, follow
         self.device = torch.device(device)
         widths = (obs_dim, action_dim, 1, obs_dim, 1, 1)
         ends = np.cumsum(widths).tolist()
@@ -83,16 +82,28 @@ class ReplayBuffer:
         # One row per transition, so that storing one is one copy and a minibatch one gather; empty,
         # not zeros: rows are read only once written, and untouched pages then take no memory.
         self._rows = torch.empty((capacity, ends[-1]), dtype=torch.float32, device=self.device)
-        self.stored = np.zeros(1, np.int64)  # transitions added in all
+
+    @property
+    def stored(self) -> np.ndarray:
+        """Transitions added in all, as the one count of `layered.replay_journal`'s K."""
+        return np.array([self._added], np.int64)
+
+    @property
+    def size(self) -> int:
+        """Transitions the ring holds."""
+        return min(self._added, self.capacity)
+
+    @property
+    def _next(self) -> int:
+        """The slot the next transition is stored in."""
+        return self._added % self.capacity
 
     def add(self, t: Transition) -> None:
         """Store one transition."""
         row = np.concatenate([np.ravel(t.obs), np.ravel(t.action), [t.reward], np.ravel(t.next_obs),
                               [0.0 if t.terminated else 1.0, t.discount]], dtype=np.float32)
         self._rows[self._next] = torch.from_numpy(row)
-        self._next = (self._next + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
-        self.stored += 1
+        self._added += 1
 
     def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
         """A uniform minibatch drawn with replacement (indices from `rng`, rows gathered on the device)."""
@@ -114,12 +125,11 @@ class ReplayBuffer:
     def restore(self, stored: np.ndarray, segments: Iterable[tuple[torch.Tensor, np.ndarray, np.ndarray]]) -> None:
         """Refill the buffer from `rows_since`'s outputs (see `put_rows`) and set its counts to `stored[0]`."""
         put_rows(self._rows[None], stored, segments)
-        self.stored[:] = stored
-        self.size, self._next = min(int(stored[0]), self.capacity), int(stored[0]) % self.capacity
+        self._added = int(stored[0])
 
     def load_fields(self, state: dict[str, Any]) -> None:
         """Restore a buffer as a checkpoint of layered 0.1.0 holds it (its fields, size and next slot)."""
-        self.size, self._next = int(state["size"]), int(state["next"])
+        size, next_slot = int(state["size"]), int(state["next"])
         for key in self.FIELDS:
-            self._rows[: self.size, self._columns[key]] = state[key].to(self.device)
-        self.stored[:] = self.size if self.size < self.capacity else self.capacity + self._next
+            self._rows[:size, self._columns[key]] = state[key].to(self.device)
+        self._added = size if size < self.capacity else self.capacity + next_slot  # (a full ring: one round on)

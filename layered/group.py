@@ -35,7 +35,7 @@ from layered.envs import make_env, snapshot_env
 from layered.events import EventLog
 from layered.group_eval import all_rows, evaluate_group
 from layered.group_state import (
-    REPLAY,
+    GROUP_CHECKPOINT,
     GroupCheckpoint,
     Pending,
     PhaseLoop,
@@ -56,7 +56,7 @@ from layered.orders import Phase
 from layered.pending_losses import PendingLosses
 from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
-from layered.replay_journal import ReplayJournal, replays_of
+from layered.replay_journal import ReplayJournal, replay_folder, replays_of
 from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
 from layered.rules import Rules
@@ -185,7 +185,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
             seeds.append(seed)
         stop = StopRequest(until="this step")
         group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop,
-                      ReplayJournal(directory / REPLAY))
+                      ReplayJournal(replay_folder(directory / GROUP_CHECKPOINT)))
         del singles
         try:
             with stop.installed():

@@ -62,6 +62,7 @@ def evaluate_group(rules: Rules, envs: Envs, policy: GroupPolicy, macs: dict[str
             measured[r // lanes][int(episode[r])] = meter.finish(r)
         episode[ended] += lanes
         again = ended & (episode < episodes)
-        start(again)
+        if again.any():
+            start(again)
         live &= ~ended | again
     return [summarise([played[j] for j in range(episodes)]) for played in measured]

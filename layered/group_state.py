@@ -20,12 +20,11 @@ import numpy as np
 import torch
 
 from layered.checkpoint import CheckpointError, load_latest, previous, save_checkpoint
-from layered.replay_journal import Manifest, ReplayJournal, check_segments
+from layered.replay_journal import Manifest, ReplayJournal, check_segments, replay_folder
 from layered.rundir import RunDirError, RunInfo, check_new_run_dir, read_run_info, steps_option
 from layered.runstate import LoopState
 
 GROUP_CHECKPOINT = "group.pt"
-REPLAY = "replay"  # the folder of the replay buffers' segments
 
 
 @dataclass
@@ -139,7 +138,7 @@ def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
     """The group's newest usable checkpoint (one whose replay segments are all there, undamaged), or None if it
     has none; refused, in one line, when it was taken for other seeds, recipes or `--steps`."""
     saved = load_latest(directory / GROUP_CHECKPOINT, "group",
-                        lambda saved: check_segments(directory / REPLAY, saved["replays"]))
+                        lambda saved: check_segments(replay_folder(directory / GROUP_CHECKPOINT), saved["replays"]))
     if saved is None:
         return None
     if saved["seeds"] != list(seeds):
@@ -162,7 +161,6 @@ def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
                                              _arrays(loop["lengths"])),
                            _arrays(saved["rules"]), saved["envs"], _arrays(saved["obs"]), saved["learners"],
                            saved["torch_rng"], saved["replays"])
-
 
 
 def _tensors(tree: Any) -> Any:
@@ -206,4 +204,4 @@ def clear_group(directory: Path) -> None:
     """Remove a group's checkpoints (a group starting over, or one whose seeds have all written their results)."""
     for path in (directory / GROUP_CHECKPOINT, previous(directory / GROUP_CHECKPOINT)):
         path.unlink(missing_ok=True)
-    ReplayJournal(directory / REPLAY).clear()
+    ReplayJournal(replay_folder(directory / GROUP_CHECKPOINT)).clear()

@@ -33,7 +33,10 @@ class Replay(Protocol):
 
     k: int
     capacity: int
-    stored: np.ndarray  # [K] rows stored in all
+
+    @property
+    def stored(self) -> np.ndarray:
+        """[K] rows stored in all."""
 
     def rows_since(self, since: np.ndarray) -> tuple[Any, np.ndarray]: ...
 
@@ -45,6 +48,11 @@ class HasReplays(Protocol):
 
     @property
     def replays(self) -> Mapping[str, Replay]: ...
+
+
+def replay_folder(checkpoint: Path) -> Path:
+    """Where the segments of the replay buffers of the run (or group) checkpointed at `checkpoint` are."""
+    return checkpoint.parent / "replay"
 
 
 def replays_of(learners: Mapping[str, HasReplays]) -> dict[str, Replay]:

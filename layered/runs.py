@@ -33,8 +33,8 @@ from layered.rundir import (
     steps_option,
     writing,
 )
-from layered.replay_journal import ReplayJournal
-from layered.runstate import LoopState, load_state, recipe_differences, recipe_digest, replay_folder
+from layered.replay_journal import ReplayJournal, replay_folder
+from layered.runstate import LoopState, load_state, recipe_differences, recipe_digest
 from layered.trainer import Diverged, Training, phase_budget, phases_of, train_phases
 
 

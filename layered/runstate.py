@@ -128,11 +128,6 @@ def save_state(path: Path, state: LoopState, learners: dict[str, Learner], resol
     journal.prune()
 
 
-def replay_folder(checkpoint: Path) -> Path:
-    """Where the segments of the replay buffers of the run checkpointed at `checkpoint` are."""
-    return checkpoint.parent / "replay"
-
-
 def load_state(path: Path, learners: dict[str, Learner], resolved_recipe: dict[str, Any],
              max_steps: int | None, journal: ReplayJournal, changed_from: str | None = None) -> LoopState | None:
     """Restore the newest usable checkpoint into `learners` (their replay buffers from `journal`'s segments); its

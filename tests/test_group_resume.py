@@ -17,7 +17,8 @@ from conftest import assert_same_run, kill_when, passed
 from layered.rundir import RunDirError
 from layered.cli import main
 from layered.group import Group, resume_group
-from layered.group_state import GROUP_CHECKPOINT, REPLAY, group_dir
+from layered.group_state import GROUP_CHECKPOINT, group_dir
+from layered.replay_journal import replay_folder
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=40", "eval.every=150", "eval.episodes=1",
@@ -95,7 +96,7 @@ def test_a_group_whose_newest_replay_segment_is_damaged_resumes_from_the_checkpo
     stop_at(monkeypatch, [(0, 250)])  # checkpoints at steps 100, 200 and 250
     assert main([*command, "--out", str(out)]) == 130
     monkeypatch.undo()
-    segments = sorted((out / REPLAY).glob("slow.td3.*.pt"))
+    segments = sorted(replay_folder(out / GROUP_CHECKPOINT).glob("slow.td3.*.pt"))
     assert len(segments) == 3, "one per checkpoint, each of the rows stored since the one before"
     newest = segments[-1]
     newest.write_bytes(newest.read_bytes()[:-10])
@@ -105,7 +106,7 @@ def test_a_group_whose_newest_replay_segment_is_damaged_resumes_from_the_checkpo
     assert "damaged" in err and "using the previous checkpoint group.prev.pt" in err
     assert "continues from its checkpoint in phase 0 at step 200" in err
     assert_same_group(tmp_path / "whole", out, (0, 3))
-    assert not (out / REPLAY).exists(), "a finished group keeps no replay segments"
+    assert not replay_folder(out / GROUP_CHECKPOINT).exists(), "a finished group keeps no replay segments"
 
 
 def test_a_stopped_group_is_refused_a_new_start_and_other_steps_and_force_starts_over(tmp_path, monkeypatch, capsys):

@@ -19,8 +19,8 @@ from layered import load_recipe
 from layered.checkpoint import CheckpointError, load_checkpoint, previous, save_checkpoint
 from layered.learner_set import build_learners
 from layered.recipe import resolved
-from layered.replay_journal import ReplayJournal
-from layered.runstate import load_state, replay_folder
+from layered.replay_journal import ReplayJournal, replay_folder
+from layered.runstate import load_state
 from layered.interrupt import Stopped
 from layered.rundir import RunDirError, read_run_info, writer
 from layered.runs import resume, train
