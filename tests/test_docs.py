@@ -75,3 +75,16 @@ def test_relative_links_and_their_anchors_resolve():
             elif anchor and file.suffix == ".md" and anchor not in _anchors(file.read_text()):
                 broken.append(f"{page.name}: {target} (no such heading)")
     assert not broken, broken
+
+
+def test_recipe_paths_in_docs_and_benchmarks_exist():
+    """Every `recipes/...toml` a page or benchmark names is a shipped recipe (a glob matches at least one)."""
+    root = DOCS.parent
+    pages = [root / "README.md", root / "DEVELOPERS.md", root / "Makefile", *sorted(DOCS.glob("*.md")),
+             *sorted((root / "benchmarks").glob("*.py"))]
+    missing = []
+    for page in pages:
+        for named in set(re.findall(r"recipes/[\w./*{},-]*?\.toml", page.read_text())):
+            if not all(any(root.glob(path)) for path in _named_paths(f"`{named}`")):
+                missing.append(f"{page.name}: {named}")
+    assert not missing, missing
