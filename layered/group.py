@@ -28,6 +28,7 @@ import numpy as np
 import tomli_w
 import torch
 
+from layered.best_journal import BestJournal, best_folder
 from layered.checkpoint import save_checkpoint
 from layered.env_group import Envs
 from layered.env_workers import open_envs
@@ -185,7 +186,8 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
             seeds.append(seed)
         stop = StopRequest(until="this step")
         group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop,
-                      ReplayJournal(replay_folder(directory / GROUP_CHECKPOINT)))
+                      ReplayJournal(replay_folder(directory / GROUP_CHECKPOINT)),
+                      BestJournal(best_folder(directory / GROUP_CHECKPOINT)))
         del singles
         try:
             with stop.installed():
@@ -223,9 +225,10 @@ class Group:
     """K seeds of a recipe training together, phase by phase, checkpointing every `checkpoint_every` steps."""
 
     def __init__(self, seeds: list[Seed], learners: dict[str, GroupLearner], max_steps: int | None, progress: bool,
-                 directory: Path, digests: list[str], stop: StopRequest, journal: ReplayJournal) -> None:
+                 directory: Path, digests: list[str], stop: StopRequest, journal: ReplayJournal, best: BestJournal
+                 ) -> None:
         self.seeds, self.learners, self.max_steps, self.progress = seeds, learners, max_steps, progress
-        self.directory, self.digests, self.stop, self.journal = directory, digests, stop, journal
+        self.directory, self.digests, self.stop, self.journal, self.best = directory, digests, stop, journal, best
         self.recipe = seeds[0].recipe
         self.rows = len(seeds)
         self.names = self.recipe.layer_names()
@@ -238,6 +241,7 @@ class Group:
             for name, learner in self.learners.items():
                 learner.load_resume_state(saved.learners[name])
             self.journal.restore(saved.replays, replays_of(self.learners))
+            self.best.load(saved.best, [seed.state for seed in self.seeds])
             torch.set_rng_state(saved.torch_rng)
         for p, phase in enumerate(phases_of(self.recipe)):
             if p < start:
@@ -383,12 +387,15 @@ class Group:
             while state.next_checkpoint <= loop.step:
                 state.next_checkpoint += interval
             state.log_sizes = {"metrics": seed.metrics.size(), "episodes": seed.episodes.size()}
+        numbers, states = [seed.recipe.train.seed for seed in self.seeds], [seed.state for seed in self.seeds]
         replays = self.journal.record(replays_of(self.learners))  # (the rows stored since the last checkpoint)
-        save_group(self.directory, [seed.recipe.train.seed for seed in self.seeds], self.digests, self.max_steps,
-                   GroupCheckpoint([seed.state for seed in self.seeds], loop, rules.state_dict(), envs.snapshots(),
-                                   envs.obs, {name: g.resume_state() for name, g in self.learners.items()},
-                                   torch.get_rng_state(), replays))
+        best = self.best.record(numbers, states)  # (the seeds' whose best changed since)
+        save_group(self.directory, numbers, self.digests, self.max_steps,
+                   GroupCheckpoint(states, loop, rules.state_dict(), envs.snapshots(), envs.obs,
+                                   {name: g.resume_state() for name, g in self.learners.items()},
+                                   torch.get_rng_state(), replays, best))
         self.journal.prune()
+        self.best.prune()
 
     def _log_episodes(self, ended: np.ndarray, phase: int, loop: PhaseLoop) -> None:
         """Log the episodes that ended in the `ended` rows, and start their counts again."""

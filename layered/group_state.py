@@ -6,7 +6,8 @@ their episodes at different steps, so its checkpoint holds every environment's s
 transitions and each seed's loop state. It is one file, `group.pt`, in the group's directory (the seeds'
 run directories are its `seed<k>` folders), written atomically beside its previous one; the replay buffers'
 rows are in the directory's `replay/` folder, each checkpoint adding what was stored since the last
-(layered.replay_journal).
+(layered.replay_journal), and each seed's best weights in its `best/` folder, written when they change
+(layered.best_journal).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from layered.best_journal import BestFiles, BestJournal, best_folder, check_best
 from layered.checkpoint import CheckpointError, load_latest, previous, save_checkpoint
 from layered.replay_journal import Manifest, ReplayJournal, check_segments, replay_folder
 from layered.rundir import RunDirError, RunInfo, check_new_run_dir, read_run_info, steps_option
@@ -95,6 +97,7 @@ class GroupCheckpoint:
     learners: dict[str, dict[str, Any]]
     torch_rng: torch.Tensor
     replays: dict[str, Manifest]  # per replay buffer (`<layer>.<part>`), its segments
+    best: BestFiles  # each seed's best weights (loaded into its state by `BestJournal.load`)
 
 
 def group_dir(run_dir: Path) -> Path | None:
@@ -125,7 +128,7 @@ def save_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
     loop = checkpoint.loop
     save_checkpoint(directory / GROUP_CHECKPOINT, "group", {
         "seeds": list(seeds), "recipe_digests": list(digests), "max_steps": max_steps,
-        "states": [state.to_json() for state in checkpoint.states], "best": [state.best for state in checkpoint.states],
+        "states": [state.to_json() for state in checkpoint.states], "best": checkpoint.best,
         "loop": {"step": loop.step, "pending": {str(i): _tensors(asdict(p)) for i, p in loop.pending.items()},
                  "returns": _tensors(loop.returns), "lengths": _tensors(loop.lengths)},
         "rules": _tensors(checkpoint.rules), "envs": checkpoint.envs, "obs": _tensors(checkpoint.obs),
@@ -135,10 +138,15 @@ def save_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
 
 def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps: int | None
                ) -> GroupCheckpoint | None:
-    """The group's newest usable checkpoint (one whose replay segments are all there, undamaged), or None if it
-    has none; refused, in one line, when it was taken for other seeds, recipes or `--steps`."""
-    saved = load_latest(directory / GROUP_CHECKPOINT, "group",
-                        lambda saved: check_segments(replay_folder(directory / GROUP_CHECKPOINT), saved["replays"]))
+    """The group's newest usable checkpoint (one whose replay segments and best weights are all there, undamaged),
+    or None if it has none; refused, in one line, when it was taken for other seeds, recipes or `--steps`."""
+    path = directory / GROUP_CHECKPOINT
+
+    def check(saved: dict[str, Any]) -> None:
+        check_segments(replay_folder(path), saved["replays"])
+        check_best(best_folder(path), saved["best"])
+
+    saved = load_latest(path, "group", check)
     if saved is None:
         return None
     if saved["seeds"] != list(seeds):
@@ -150,17 +158,13 @@ def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
     if saved["max_steps"] != max_steps:
         raise CheckpointError(f"{directory}: the group was started with {steps_option(saved['max_steps'])}, not "
                               f"{steps_option(max_steps)}")
-    states = []
-    for text, best in zip(saved["states"], saved["best"], strict=True):
-        state = LoopState.from_json(text)
-        state.best = best
-        states.append(state)
+    states = [LoopState.from_json(text) for text in saved["states"]]
     loop = saved["loop"]
     pending = {int(i): Pending(**_arrays(p)) for i, p in loop["pending"].items()}
     return GroupCheckpoint(states, PhaseLoop(int(loop["step"]), pending, _arrays(loop["returns"]),
                                              _arrays(loop["lengths"])),
                            _arrays(saved["rules"]), saved["envs"], _arrays(saved["obs"]), saved["learners"],
-                           saved["torch_rng"], saved["replays"])
+                           saved["torch_rng"], saved["replays"], saved["best"])
 
 
 def _tensors(tree: Any) -> Any:
@@ -205,3 +209,4 @@ def clear_group(directory: Path) -> None:
     for path in (directory / GROUP_CHECKPOINT, previous(directory / GROUP_CHECKPOINT)):
         path.unlink(missing_ok=True)
     ReplayJournal(replay_folder(directory / GROUP_CHECKPOINT)).clear()
+    BestJournal(best_folder(directory / GROUP_CHECKPOINT)).clear()

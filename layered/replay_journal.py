@@ -2,16 +2,13 @@
 one, not the whole buffer: at the paper's 1M transitions per seed, one Hopper seed holds 112 MB of replay
 and a group of 32 holds 3.6 GB, which a checkpoint per evaluation would otherwise write again each time.
 
-A segment is a checkpoint file of its own (written atomically, checksummed) in a `replay/` folder beside
-the run's (or the group's) checkpoint, which holds a manifest per buffer: its stored counts and its
-segments, each with its checksum, so that a segment rewritten after a crash is never taken for the one a
-checkpoint named. Segments whose rows the ring has all overwritten leave the manifest; files that neither
-the newest nor the previous checkpoint names are removed once the newest is written.
+A segment is a file of its own (`layered.attachments`) in a `replay/` folder beside the run's (or the
+group's) checkpoint, which holds a manifest per buffer: its stored counts and its segments, each with its
+checksum. Segments whose rows the ring has all overwritten leave the manifest.
 """
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, Protocol
@@ -19,7 +16,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, verified_digest
+from layered.attachments import Attachments, check_attachments
 
 Manifest = dict[str, Any]
 """One buffer's part of a checkpoint: `stored` (per seed), `written` (segments ever written) and `segments`
@@ -65,8 +62,8 @@ class ReplayJournal:
 
     def __init__(self, folder: Path) -> None:
         self.folder = folder
+        self.files = Attachments(folder)
         self.manifests: dict[str, Manifest] = {}
-        self.kept: set[str] = set()  # what the checkpoint on disk names: the previous one after the next
 
     def record(self, replays: dict[str, Replay]) -> dict[str, Manifest]:
         """Write each buffer's rows stored since the last record as a new segment; the manifests that the
@@ -81,49 +78,43 @@ class ReplayJournal:
             written = manifest["written"]
             if len(rows):
                 file = f"{key}.{written:06d}.pt"
-                digest = save_checkpoint(self.folder / file, SEGMENT, {"rows": rows, "first": first.tolist(),
-                                                                       "counts": counts.tolist()})
-                segments.append({"file": file, "digest": digest, "first": first.tolist(), "counts": counts.tolist()})
+                segments.append({**self.files.write(file, SEGMENT, {"rows": rows, "first": first.tolist(),
+                                                                    "counts": counts.tolist()}),
+                                 "first": first.tolist(), "counts": counts.tolist()})
                 written += 1
             self.manifests[key] = {"stored": replay.stored.tolist(), "written": written, "segments": segments}
         return dict(self.manifests)
 
     def prune(self) -> None:
-        """Once a checkpoint with the latest manifests is written: remove the files that neither it nor the one
-        before it names (segments of checkpoints replaced, and any a crash left unfinished)."""
-        named = _files(self.manifests)
-        for path in self.folder.glob("*"):
-            if path.name not in named | self.kept:
-                path.unlink(missing_ok=True)
-        self.kept = named
+        """Once a checkpoint with the latest manifests is written: remove the segments that neither it nor the
+        one before it names."""
+        self.files.prune(_files(self.manifests))
 
     def restore(self, manifests: dict[str, Manifest], replays: dict[str, Replay]) -> None:
         """Refill each buffer from the segments that a checkpoint's `manifests` name; the next record goes on
         from there."""
-        self.manifests, self.kept = dict(manifests), _files(manifests)
+        self.manifests = dict(manifests)
+        self.files.restore(_files(manifests))
         for key, replay in replays.items():
             manifest = self.manifests[key]
             replay.restore(np.array(manifest["stored"], np.int64), self._segments(manifest))
 
     def _segments(self, manifest: Manifest) -> Iterator[tuple[torch.Tensor, np.ndarray, np.ndarray]]:
         for segment in manifest["segments"]:
-            saved = load_checkpoint(self.folder / segment["file"], SEGMENT)
+            saved = self.files.load(segment, SEGMENT)
             yield saved["rows"], np.array(saved["first"], np.int64), np.array(saved["counts"], np.int64)
 
     def clear(self) -> None:
         """Remove every segment (a group starting over, or one that has finished)."""
-        shutil.rmtree(self.folder, ignore_errors=True)
-        self.manifests, self.kept = {}, set()
+        self.files.clear()
+        self.manifests = {}
 
 
 def check_segments(folder: Path, manifests: dict[str, Manifest]) -> None:
     """Refuse (CheckpointError) the checkpoint whose `manifests` these are if a segment it names in `folder` is
     missing, damaged or not the one it was written with."""
-    for manifest in manifests.values():
-        for segment in manifest["segments"]:
-            if verified_digest(folder / segment["file"]) != segment["digest"]:
-                raise CheckpointError(f"{folder / segment['file']}: not the replay segment the checkpoint was "
-                                      "taken with")
+    check_attachments(folder, [segment for manifest in manifests.values() for segment in manifest["segments"]],
+                      SEGMENT)
 
 
 def _files(manifests: dict[str, Manifest]) -> set[str]:

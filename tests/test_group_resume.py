@@ -18,6 +18,8 @@ from layered.rundir import RunDirError
 from layered.cli import main
 from layered.group import Group, resume_group
 from layered.group_state import GROUP_CHECKPOINT, group_dir
+from layered.best_journal import best_folder
+from layered.checkpoint import load_checkpoint, previous
 from layered.replay_journal import replay_folder
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -107,6 +109,29 @@ def test_a_group_whose_newest_replay_segment_is_damaged_resumes_from_the_checkpo
     assert "continues from its checkpoint in phase 0 at step 200" in err
     assert_same_group(tmp_path / "whole", out, (0, 3))
     assert not replay_folder(out / GROUP_CHECKPOINT).exists(), "a finished group keeps no replay segments"
+
+
+def test_a_group_whose_newest_best_weights_are_damaged_resumes_from_the_checkpoint_before(tmp_path, monkeypatch,
+                                                                                           capsys):
+    command = ["train", str(ROOT / "recipes/pendulum/tla-c.toml"), "--seeds", "0,3", "--steps", "300", *TINY,
+               "train.checkpoint_every=100"]
+    assert main([*command, "--out", str(tmp_path / "whole")]) == 0
+    out = tmp_path / "stopped"
+    stop_at(monkeypatch, [(1, 50)])  # phase 1's first checkpoint: its best weights are phase 1's, new files
+    assert main([*command, "--out", str(out)]) == 130
+    monkeypatch.undo()
+    newest = load_checkpoint(out / GROUP_CHECKPOINT, "group")["best"]
+    before = load_checkpoint(previous(out / GROUP_CHECKPOINT), "group")["best"]
+    assert not {a["file"] for a in newest["files"]} & {a["file"] for a in before["files"]}
+    damaged = best_folder(out / GROUP_CHECKPOINT) / newest["files"][1]["file"]
+    damaged.write_bytes(damaged.read_bytes()[:-10])
+    capsys.readouterr()
+    assert main(["resume", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "damaged" in err and "using the previous checkpoint group.prev.pt" in err
+    assert "continues from its checkpoint in phase 0" in err
+    assert_same_group(tmp_path / "whole", out, (0, 3))
+    assert not best_folder(out / GROUP_CHECKPOINT).exists(), "a finished group keeps no best weights"
 
 
 def test_a_stopped_group_is_refused_a_new_start_and_other_steps_and_force_starts_over(tmp_path, monkeypatch, capsys):
