@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 RECIPE ?= recipes/pendulum/tla-c.toml
 OUT    ?= runs/$(basename $(notdir $(RECIPE)))-$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: run test lint bench wheel-check learning-check
+.PHONY: run test lint bench wheel-check learning-check gpu-check
 
 run: $(VENV)/.installed
 	$(BIN)/layered train $(RECIPE) --out $(OUT)
@@ -17,6 +17,11 @@ test: $(VENV)/.installed
 # Pendulum TD3 and TLA-C at the recipes' budgets, 2 seeds, against the paper's numbers.
 learning-check: $(VENV)/.installed
 	$(BIN)/python -m pytest -q -m learning tests/test_learning.py
+
+# On a machine with a CUDA GPU: the tests that need one (they skip elsewhere), then the speed targets.
+gpu-check: $(VENV)/.installed
+	$(BIN)/python -m pytest -q -k "cuda or cudagraphs or gpu"
+	$(BIN)/python benchmarks/gpu.py --parts targets --group-workers auto
 
 # The wheel, installed with its extras into a clean environment, trains a shipped recipe (named, not a
 # path) and exports it, outside the checkout.
