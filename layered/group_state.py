@@ -143,6 +143,9 @@ def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
     path = directory / GROUP_CHECKPOINT
 
     def check(saved: dict[str, Any]) -> None:
+        if not isinstance(saved.get("best"), dict):
+            raise CheckpointError(f"{path}: written by a development version of layered that kept the best weights "
+                                  "in the checkpoint; start the group again with --force")
         check_segments(replay_folder(path), saved["replays"])
         check_best(best_folder(path), saved["best"])
 

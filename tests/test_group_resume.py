@@ -19,7 +19,7 @@ from layered.cli import main
 from layered.group import Group, resume_group
 from layered.group_state import GROUP_CHECKPOINT, group_dir
 from layered.best_journal import best_folder
-from layered.checkpoint import load_checkpoint, previous
+from layered.checkpoint import load_checkpoint, previous, save_checkpoint
 from layered.replay_journal import replay_folder
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -132,6 +132,22 @@ def test_a_group_whose_newest_best_weights_are_damaged_resumes_from_the_checkpoi
     assert "continues from its checkpoint in phase 0" in err
     assert_same_group(tmp_path / "whole", out, (0, 3))
     assert not best_folder(out / GROUP_CHECKPOINT).exists(), "a finished group keeps no best weights"
+
+
+def test_a_group_checkpoint_holding_its_best_weights_inline_is_refused_in_one_line(tmp_path, monkeypatch, capsys):
+    command = ["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", "0,1", "--steps", "200", *TINY,
+               "train.checkpoint_every=50", "--out", str(tmp_path / "g")]
+    stop_at(monkeypatch, [(0, 120)])
+    assert main(command) == 130
+    for path in (tmp_path / "g" / GROUP_CHECKPOINT, previous(tmp_path / "g" / GROUP_CHECKPOINT)):
+        state = load_checkpoint(path, "group")
+        state["best"] = [{}, {}]  # as the group checkpoints of a development version held them
+        save_checkpoint(path, "group", state)
+    capsys.readouterr()
+    assert main(["resume", str(tmp_path / "g")]) == 2
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if line.startswith("layered: error")]
+    assert len(errors) == 1 and "start the group again with --force" in errors[0]
 
 
 def test_a_stopped_group_is_refused_a_new_start_and_other_steps_and_force_starts_over(tmp_path, monkeypatch, capsys):
