@@ -389,7 +389,7 @@ class Group:
             state.log_sizes = {"metrics": seed.metrics.size(), "episodes": seed.episodes.size()}
         numbers, states = [seed.recipe.train.seed for seed in self.seeds], [seed.state for seed in self.seeds]
         replays = self.journal.record(replays_of(self.learners))  # (the rows stored since the last checkpoint)
-        best = self.best.record(numbers, states)  # (the seeds' whose best changed since)
+        best = self.best.record(numbers, states)  # (the best weights of seeds whose best changed since)
         save_group(self.directory, numbers, self.digests, self.max_steps,
                    GroupCheckpoint(states, loop, rules.state_dict(), envs.snapshots(), envs.obs,
                                    {name: g.resume_state() for name, g in self.learners.items()},
