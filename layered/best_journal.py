@@ -53,9 +53,10 @@ class BestJournal:
         files, written = list(self.saved["files"]) or [None] * len(states), self.saved["written"]
         which = self._which or [None] * len(states)
         for k, (seed, state) in enumerate(zip(seeds, states, strict=True)):
-            if _which(state) == which[k]:
+            now = _which(state)
+            if now == which[k]:
                 continue
-            which[k] = _which(state)
+            which[k] = now
             files[k] = None if which[k] is None else self.files.write(f"seed{seed}.{written:06d}.pt", BEST, state.best)
             written += files[k] is not None
         self.saved, self._which = BestFiles(files=files, written=written), which

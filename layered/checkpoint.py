@@ -78,10 +78,7 @@ def save_checkpoint(path: Path, layer: str, state: dict[str, Any], keep_previous
 
 def verified_digest(path: Path) -> str:
     """The checksum in the header of the checkpoint at `path`, once its content has been checked against it."""
-    try:
-        content = path.read_bytes()
-    except OSError as e:
-        raise CheckpointError(f"{path}: cannot be read ({e.strerror or e})") from None
+    content = _read(path)
     if _verified_body(path, content) is content:
         raise CheckpointError(f"{path}: written in checkpoint format 2, which has no checksum")
     return content.partition(b"\n")[0].split(b" ")[2].decode()
@@ -91,11 +88,7 @@ def load_checkpoint(path: Path, layer: str) -> dict[str, Any]:
     """The learner state saved for `layer` at `path`."""
     if not path.exists():
         raise CheckpointError(f"{path}: no checkpoint for layer {layer!r}")
-    try:
-        content = path.read_bytes()
-    except OSError as e:
-        raise CheckpointError(f"{path}: cannot be read ({e.strerror or e})") from None
-    body = _verified_body(path, content)
+    body = _verified_body(path, _read(path))
     try:  # learners move what they load to their device
         data = torch.load(io.BytesIO(body), weights_only=True, map_location="cpu")
     except (RuntimeError, EOFError, pickle.UnpicklingError, ValueError, OSError) as e:
@@ -106,6 +99,14 @@ def load_checkpoint(path: Path, layer: str) -> dict[str, Any]:
         raise CheckpointError(f"{path}: written in checkpoint format {data.get('format_version')}, this layered "
                               f"reads format {FORMAT_VERSION}")
     return data["state"]
+
+
+def _read(path: Path) -> bytes:
+    """The bytes of the file at `path`; one that cannot be read is a CheckpointError."""
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise CheckpointError(f"{path}: cannot be read ({e.strerror or e})") from None
 
 
 def _verified_body(path: Path, content: bytes) -> bytes:

@@ -89,48 +89,48 @@ def test_a_group_stepping_its_environments_in_workers_writes_the_files_of_one_st
     assert_same_group(tmp_path / "here", out, (0, 3, 4))
 
 
-def test_a_group_whose_newest_replay_segment_is_damaged_resumes_from_the_checkpoint_before(tmp_path, monkeypatch,
-                                                                                           capsys):
+def stopped_beside_whole(tmp_path, monkeypatch, moment):
+    """A TLA-C group of seeds 0 and 3 trained whole, and the same group stopped at `moment` (checkpoints every 100
+    steps); the stopped group's directory."""
     command = ["train", str(ROOT / "recipes/pendulum/tla-c.toml"), "--seeds", "0,3", "--steps", "300", *TINY,
                "train.checkpoint_every=100"]
     assert main([*command, "--out", str(tmp_path / "whole")]) == 0
     out = tmp_path / "stopped"
-    stop_at(monkeypatch, [(0, 250)])  # checkpoints at steps 100, 200 and 250
+    stop_at(monkeypatch, [moment])
     assert main([*command, "--out", str(out)]) == 130
     monkeypatch.undo()
-    segments = sorted(replay_folder(out / GROUP_CHECKPOINT).glob("slow.td3.*.pt"))
-    assert len(segments) == 3, "one per checkpoint, each of the rows stored since the one before"
-    newest = segments[-1]
-    newest.write_bytes(newest.read_bytes()[:-10])
-    capsys.readouterr()
-    assert main(["resume", str(out)]) == 0
-    err = capsys.readouterr().err
-    assert "damaged" in err and "using the previous checkpoint group.prev.pt" in err
-    assert "continues from its checkpoint in phase 0 at step 200" in err
-    assert_same_group(tmp_path / "whole", out, (0, 3))
-    assert not replay_folder(out / GROUP_CHECKPOINT).exists(), "a finished group keeps no replay segments"
+    return out
 
 
-def test_a_group_whose_newest_best_weights_are_damaged_resumes_from_the_checkpoint_before(tmp_path, monkeypatch,
-                                                                                           capsys):
-    command = ["train", str(ROOT / "recipes/pendulum/tla-c.toml"), "--seeds", "0,3", "--steps", "300", *TINY,
-               "train.checkpoint_every=100"]
-    assert main([*command, "--out", str(tmp_path / "whole")]) == 0
-    out = tmp_path / "stopped"
-    stop_at(monkeypatch, [(1, 50)])  # phase 1's first checkpoint: its best weights are phase 1's, new files
-    assert main([*command, "--out", str(out)]) == 130
-    monkeypatch.undo()
-    newest = load_checkpoint(out / GROUP_CHECKPOINT, "group")["best"]
-    before = load_checkpoint(previous(out / GROUP_CHECKPOINT), "group")["best"]
-    assert not {a["file"] for a in newest["files"]} & {a["file"] for a in before["files"]}
-    damaged = best_folder(out / GROUP_CHECKPOINT) / newest["files"][1]["file"]
+def assert_resumes_from_the_one_before(tmp_path, out, damaged, capsys, at):
+    """With the file `damaged` cut short, the stopped group in `out` resumes from its previous checkpoint (its
+    line says it continues `at`) to the files of the whole group."""
     damaged.write_bytes(damaged.read_bytes()[:-10])
     capsys.readouterr()
     assert main(["resume", str(out)]) == 0
     err = capsys.readouterr().err
     assert "damaged" in err and "using the previous checkpoint group.prev.pt" in err
-    assert "continues from its checkpoint in phase 0" in err
+    assert f"continues from its checkpoint in {at}" in err
     assert_same_group(tmp_path / "whole", out, (0, 3))
+
+
+def test_a_group_whose_newest_replay_segment_is_damaged_resumes_from_the_checkpoint_before(tmp_path, monkeypatch,
+                                                                                           capsys):
+    out = stopped_beside_whole(tmp_path, monkeypatch, (0, 250))  # checkpoints at steps 100, 200 and 250
+    segments = sorted(replay_folder(out / GROUP_CHECKPOINT).glob("slow.td3.*.pt"))
+    assert len(segments) == 3, "one per checkpoint, each of the rows stored since the one before"
+    assert_resumes_from_the_one_before(tmp_path, out, segments[-1], capsys, "phase 0 at step 200")
+    assert not replay_folder(out / GROUP_CHECKPOINT).exists(), "a finished group keeps no replay segments"
+
+
+def test_a_group_whose_newest_best_weights_are_damaged_resumes_from_the_checkpoint_before(tmp_path, monkeypatch,
+                                                                                           capsys):
+    out = stopped_beside_whole(tmp_path, monkeypatch, (1, 50))  # phase 1's first checkpoint: phase 1's best, new files
+    newest = load_checkpoint(out / GROUP_CHECKPOINT, "group")["best"]
+    before = load_checkpoint(previous(out / GROUP_CHECKPOINT), "group")["best"]
+    assert not {a["file"] for a in newest["files"]} & {a["file"] for a in before["files"]}
+    damaged = best_folder(out / GROUP_CHECKPOINT) / newest["files"][1]["file"]
+    assert_resumes_from_the_one_before(tmp_path, out, damaged, capsys, "phase 0")
     assert not best_folder(out / GROUP_CHECKPOINT).exists(), "a finished group keeps no best weights"
 
 
