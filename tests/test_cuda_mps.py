@@ -50,7 +50,8 @@ def test_mps_that_does_not_start_or_is_not_installed_is_one_line_and_the_sweep_g
     with shared_gpu(3) as line:
         assert line == f"CUDA MPS did not start (`{CONTROL} -d`: no GPU); the 3 workers take turns on the GPU"
     assert control.read_text() == "args: -d\n"  # nothing to quit
-    monkeypatch.setenv("PATH", "/usr/bin:/bin")
+    (tmp_path / "empty").mkdir()  # a PATH with no control program (a GPU machine may have one in /usr/bin)
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
     with shared_gpu(3) as line:
         assert "take turns on the GPU" in line and f"`{CONTROL} -d`" in line
     with shared_gpu(1) as line:  # one worker has the GPU to itself
