@@ -3,7 +3,6 @@ replays, is the update on the host's masks; and it does nothing that a capture f
 any machine, by the operations it dispatches). The capture itself is checked where there is a GPU."""
 
 import contextlib
-import functools
 import warnings
 
 import numpy as np
@@ -13,7 +12,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from layered.learners.graphed import GraphedStep, register_generators
 from layered.learners.td3 import TD3Config
-from layered.learners.td3_group import TD3Group
+from layered.learners.td3_group import TD3Group, Variant
 from test_td3_group import fill, flat_state, learners
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
@@ -24,11 +23,15 @@ MASKS = [np.array(m) for m in ([1, 1, 1], [1, 0, 1], [0, 1, 1], [1, 1, 0], [0, 0
 def on_device_masks(group: TD3Group) -> TD3Group:
     """`group` updating as a captured group does, through `GraphedStep`s and its device masks (on a CPU the
     steps run eagerly, so this is the update that a GPU captures, run as it is)."""
-    rows, acting, delayed = group._masks
-    group._graphed = {with_actor: GraphedStep(functools.partial(group._update_step, rows, acting, delayed, with_actor),
-                                              group.device, [group.torch_rng])
-                      for with_actor in (False, True)}
+    group._graphed = {}
     return group
+
+
+class Masked(TD3Group):
+    """A group on device masks that always replays the variant which puts left-out seeds back."""
+
+    def captured_step(self, variant: Variant):
+        return super().captured_step(Variant(variant.with_actor, False, False))
 
 
 def paired(config: TD3Config) -> tuple[TD3Group, TD3Group]:
@@ -77,18 +80,23 @@ READS_BACK = {"_local_scalar_dense", "item", "is_nonzero", "equal", "nonzero", "
 """Operations that read a value on the host or make a shape from values: a capture cannot hold them."""
 
 
-@pytest.mark.parametrize("with_actor", [False, True])
-def test_the_captured_update_reads_nothing_back_and_draws_from_its_own_generator(with_actor):
+VARIANTS = [Variant(False, False, False), Variant(True, False, False), Variant(False, True, False),
+            Variant(True, True, True)]
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_the_captured_update_reads_nothing_back_and_draws_from_its_own_generator(variant):
     group = on_device_masks(TD3Group(learners([0, 1, 2])))
     fill(group, [0, 1, 2])
     group.update()  # gradients and moments exist, as after the eager calls that come before a capture
     group._masks.copy_(torch.tensor([[1.0, 0.0, 1.0], [1.0, 0.0, 0.0], [1.0, 0.0, 1.0]]))
     drawn_from = group.torch_rng.get_state()
     with Dispatched() as seen:
-        group._graphed[with_actor].step()
+        group.captured_step(variant).step()
     names = {name for name, _, _ in seen.calls}
     assert not names & READS_BACK, names & READS_BACK
     assert "_fused_adam_" in names and ("baddbmm" in names)
+    assert ("where" in names) == (not variant.every_critic)  # left-out seeds put back, where there can be any
     draws = [(name, kwargs.get("generator")) for name, _, kwargs in seen.calls
              if name in {"rand", "randn", "normal", "uniform_", "normal_", "randint", "bernoulli"}]
     assert [name for name, _ in draws] == ["rand", "randn"]  # the minibatch's indices, the smoothing noise
@@ -98,6 +106,28 @@ def test_the_captured_update_reads_nothing_back_and_draws_from_its_own_generator
                         and any(isinstance(i, torch.Tensor) and i.dtype == torch.bool
                                 for a in args if isinstance(a, (list, tuple)) for i in a)]
     assert not boolean_indexing
+
+
+def test_the_update_of_every_seed_is_the_masked_update_on_a_mask_of_every_seed_bit_for_bit():
+    """A step whose masks hold every seed replays a graph without the putting back; its numbers are those of the
+    graph with it (nothing put back), and the partial masks in between still take the masked one."""
+    config = TD3Config(hidden=(32, 16), batch_size=8, buffer_size=100)
+    variants, masked = on_device_masks(TD3Group(learners([0, 1, 2], config))), on_device_masks(
+        Masked(learners([0, 1, 2], config)))
+    for group in (variants, masked):
+        fill(group, [0, 1, 2])
+    everyone = np.ones(3, bool)
+    for mask in (everyone, everyone, np.array([True, False, True]), everyone, everyone):
+        a, b = variants.update(mask), masked.update(mask)
+        assert a is not None and b is not None
+        for name in a:
+            assert torch.equal(a[name][0], b[name][0]), name
+    assert variants._graphed is not None and set(variants._graphed) == {  # (after the partial mask the seeds'
+        Variant(False, True, False), Variant(True, True, True), Variant(False, False, False),  # policy delays part)
+        Variant(True, True, False)}
+    for k in range(3):
+        mine, theirs = flat_state(variants, k), flat_state(masked, k)
+        assert all(torch.equal(mine[key], theirs[key]) for key in mine)
 
 
 def test_the_update_on_host_masks_computes_only_the_seeds_that_take_part():

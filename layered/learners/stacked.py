@@ -92,13 +92,16 @@ class StackedAdam:
             p.grad = None
 
     @torch.no_grad()
-    def step(self, rows: np.ndarray | torch.Tensor) -> None:
+    def step(self, rows: np.ndarray | torch.Tensor, everyone: bool = False) -> None:
         """One Adam step of the seeds in `rows` from the parameters' gradients. `rows` is a [K] boolean mask on
         the host, and only its seeds are handed to Adam; or a [K] float mask of 0s and 1s on the device, and
         every seed is stepped and the others put back, without reading the mask on the host (for a captured
-        update)."""
+        update). `everyone`: the caller knows that the device mask holds every seed, so none is put back."""
         if isinstance(rows, np.ndarray):
             self._adam(np.flatnonzero(rows).tolist())
+            return
+        if everyone:
+            self._adam(range(self._counts.shape[1]))
             return
         before = [t.clone() for t in (*self.params, *self.exp_avg, *self.exp_avg_sq)]
         self._adam(range(self._counts.shape[1]))

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -46,6 +46,16 @@ DecisionPath = Sequence[tuple[np.ndarray, float, int]]
 
 Mask = np.ndarray | torch.Tensor
 """Which seeds take part: [K] booleans on the host, or [K] 0s and 1s on the device (inside a captured step)."""
+
+class Variant(NamedTuple):
+    """Which captured update a step replays: with the actor's step or not, and whether the critics' and the
+    actor's masks hold every seed (then Adam has no left-out seed to put back: a common case, and a cheaper
+    graph)."""
+
+    with_actor: bool
+    every_critic: bool
+    every_actor: bool
+
 
 GroupLosses = dict[str, tuple[torch.Tensor, np.ndarray]]
 """What one update of a group returns: per loss name, its value for every seed ([K], on the device) and the
@@ -94,14 +104,11 @@ class TD3Group:
         self.staging = Staging(self.device)  # observations and masks on their way to the device
         self.rng = np.random.default_rng(seed)
         self.updates = np.zeros(self.k, np.int64)  # per seed
-        # with compile = "cudagraphs": the update, with and without the actor's step, as CUDA graphs replayed on
-        # the masks of the seeds that update, act and follow, which each update writes here
+        # with compile = "cudagraphs": the update as CUDA graphs replayed on the masks of the seeds that update,
+        # act and follow, which each update writes here; one graph per `Variant` met (`captured_step`)
         self._masks = torch.zeros((3, self.k), device=self.device)
-        rows, acting, delayed = self._masks
-        self._graphed = None if self.config.compile == "off" else {
-            with_actor: GraphedStep(functools.partial(self._update_step, rows, acting, delayed, with_actor),
-                                    self.device, [self.torch_rng])
-            for with_actor in (False, True)}
+        self._graphed: dict[Variant, GraphedStep[tuple[torch.Tensor, torch.Tensor | None]]] | None = (
+            None if self.config.compile == "off" else {})
         # and acting, as one more graph: the actor's kernels at one launch, on observations copied in here
         self._act_obs = torch.zeros((self.k, 1, self.obs_dim), device=self.device)
         self._graphed_act = None if self.config.compile == "off" else GraphedStep(
@@ -171,21 +178,34 @@ class TD3Group:
                 critic, actor = self._update_step(rows, acting, delayed, with_actor)
             else:
                 self._masks.copy_(self.staging.put(np.stack([rows, acting, delayed])))
-                critic, actor = self._graphed[with_actor]()
+                critic, actor = self.captured_step(Variant(with_actor, bool(rows.all()),
+                                                           with_actor and bool(acting.all())))()
         losses = {"critic": (critic, rows)}
         if actor is not None:
             losses["actor"] = (actor, acting)
         return losses
 
-    def _update_step(self, rows: Mask, acting: Mask, delayed: Mask, with_actor: bool
+    def captured_step(self, variant: Variant) -> GraphedStep[tuple[torch.Tensor, torch.Tensor | None]]:
+        """The update of `variant` on the device's masks, as the CUDA graph it is captured as (made when first
+        asked for)."""
+        assert self._graphed is not None, "a group with compile = 'off' updates eagerly"
+        if variant not in self._graphed:
+            rows, acting, delayed = self._masks
+            self._graphed[variant] = GraphedStep(
+                functools.partial(self._update_step, rows, acting, delayed, variant.with_actor, variant),
+                self.device, [self.torch_rng])
+        return self._graphed[variant]
+
+    def _update_step(self, rows: Mask, acting: Mask, delayed: Mask, with_actor: bool, variant: Variant | None = None
                      ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """A critic step of the `rows` seeds, an actor step of the `acting` ones (`with_actor`), and the
         critics' targets of the `delayed` ones that do not act yet followed; the losses per seed. The masks
-        are on the host, or on the device for a step that never reads them back (a captured one)."""
+        are on the host, or on the device for a step that never reads them back (a captured one, whose
+        `variant` says which of its masks hold every seed)."""
         batch = self.sample()
         noise = torch.randn(batch[1].shape, generator=self.torch_rng, device=self.device)
-        critic = self.critic_step(batch, noise, rows)
-        actor = self.actor_step(batch[0], acting) if with_actor else None
+        critic = self.critic_step(batch, noise, rows, variant is not None and variant.every_critic)
+        actor = self.actor_step(batch[0], acting, variant is not None and variant.every_actor) if with_actor else None
         if isinstance(delayed, torch.Tensor) or (delayed & ~acting).any():
             follow(*self._critic_pairs, (self._weights(delayed) - self._weights(acting)) * self.config.tau)
         return critic, actor
@@ -194,10 +214,11 @@ class TD3Group:
         """A mask as the device's [K] float mask of 0s and 1s."""
         return rows if isinstance(rows, torch.Tensor) else masked(rows, self.device)
 
-    def critic_step(self, batch: tuple[torch.Tensor, ...], noise: torch.Tensor, rows: Mask | None = None
-                    ) -> torch.Tensor:
+    def critic_step(self, batch: tuple[torch.Tensor, ...], noise: torch.Tensor, rows: Mask | None = None,
+                    everyone: bool = False) -> torch.Tensor:
         """One critic step of the seeds in the `rows` mask (default all) on their minibatches,
-        with standard-normal smoothing `noise`; the losses per seed."""
+        with standard-normal smoothing `noise`; the losses per seed. `everyone`: a device mask holds every
+        seed (see `StackedAdam.step`)."""
         rows = np.ones(self.k, bool) if rows is None else rows
         seeds = self.subset(rows)
         obs, action, reward, next_obs, not_done, discount, noise = (pick(t, seeds) for t in (*batch, noise))
@@ -215,12 +236,12 @@ class TD3Group:
                       + (self.q2(pair, seeds=seeds) - target).float().square().mean(dim=(1, 2)))
         self.critic_opt.zero_grad()
         losses.sum().backward()
-        self.critic_opt.step(rows)
+        self.critic_opt.step(rows, everyone)
         return self._per_seed(losses.detach(), seeds)
 
-    def actor_step(self, obs: torch.Tensor, rows: Mask | None = None) -> torch.Tensor:
+    def actor_step(self, obs: torch.Tensor, rows: Mask | None = None, everyone: bool = False) -> torch.Tensor:
         """One actor step of the seeds in the `rows` mask (default all) through their Q1, then the soft update
-        of their targets; the losses per seed."""
+        of their targets; the losses per seed. `everyone`: as `critic_step`'s."""
         rows = np.ones(self.k, bool) if rows is None else rows
         seeds = self.subset(rows)
         obs = pick(obs, seeds)
@@ -229,7 +250,7 @@ class TD3Group:
             losses = -q1.float().mean(dim=(1, 2))
         self.actor_opt.zero_grad()
         losses.sum().backward()
-        self.actor_opt.step(rows)
+        self.actor_opt.step(rows, everyone)
         weight = self._weights(rows) * self.config.tau
         follow(*self._actor_pair, weight)
         follow(*self._critic_pairs, weight)
