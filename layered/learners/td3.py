@@ -73,9 +73,10 @@ class TD3Config(LearnerConfig):
     `cudagraphs` (mode reduce-overhead, which also replays the steps as CUDA graphs; GPU only).
     The first updates then wait for compilation; results match eager ones closely, not bit for bit.
     In a group (`--seeds`), `cudagraphs` captures the whole update of all its seeds (sampling, both
-    critics, the actor's step, the targets) after three eager updates, as one CUDA graph with the
-    actor's step and one without, one of them replayed per update, and its acting as a third (the
-    very actions eager acting gives); `inductor` is refused there."""
+    critics, the actor's step, the targets) after three eager updates, as one CUDA graph per kind of
+    update met (with the actor's step or without; every seed taking part, or some left out and put
+    back), one of them replayed per update, and its acting as one more (the very actions eager acting
+    gives); `inductor` is refused there."""
 
 
     def on_device(self, device: str) -> TD3Config:

@@ -1,0 +1,91 @@
+"""Where a group's training step goes on a GPU: each step timed, and a `torch.profiler` window of steps.
+
+Trains the benchmark's TD3 recipe (see `gpu.py`) as a group with its evaluations and checkpoints moved
+beyond the run, so that the steps timed are training steps alone (acting, the environments' step, storing,
+the update). Prints the median and 90th percentile of the time per step over the steps with updates before
+the profiler's window, and the window's kernels (GPU time) and host operations (CPU time), in tables; writes
+the window's trace (Chrome format, gzipped) beside them with `--trace`.
+
+    python benchmarks/gpu_profile.py                                   # one HalfCheetah-v5 seed, 256-256
+    python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto
+    python benchmarks/gpu_profile.py --device cpu --steps 1600 --window 50   # checks the script on a CPU
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import tomli_w
+import torch
+from torch.profiler import ProfilerActivity, profile, schedule
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gpu import td3_recipe
+
+from layered import progress
+from layered.cli import main as layered
+
+
+def profiled(args: argparse.Namespace, tmp: Path) -> tuple[list[float], torch.profiler.profile]:
+    """Train the group; the times between its steps, and the profiler that recorded the last `--window` steps."""
+    recipe = tmp / "td3.toml"
+    mode = "cudagraphs" if args.device == "cuda" else "off"
+    recipe.write_text(tomli_w.dumps(td3_recipe(args.env, args.hidden, args.steps, args.warmup, 10 * args.steps,
+                                               compile=mode)))
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if args.device == "cuda" else [])
+    wait = args.steps - args.window - 20
+    stamps: list[float] = []
+    advance = progress.Progress.advance
+    with profile(activities=activities, schedule=schedule(wait=wait, warmup=20, active=args.window)) as prof:
+        def stepped(bar: progress.Progress, steps: int) -> None:
+            advance(bar, steps)
+            prof.step()
+            stamps.append(time.perf_counter())
+
+        progress.Progress.advance = stepped  # type: ignore[method-assign,assignment]
+        try:
+            layered(["train", str(recipe), "--seeds", str(args.seeds), "--device", args.device,
+                     "--out", str(tmp / "runs"), f"env.workers={args.workers}"])
+        finally:
+            progress.Progress.advance = advance  # type: ignore[method-assign]
+    first = args.warmup + (wait - args.warmup) // 4  # (the first updates capture their graphs)
+    return [b - a for a, b in zip(stamps[first:wait], stamps[first + 1:wait], strict=False)], prof
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--env", default="HalfCheetah-v5")
+    parser.add_argument("--hidden", default="256,256")
+    parser.add_argument("--seeds", type=int, default=1)
+    parser.add_argument("--workers", default="0", help="env.workers (0: in this process; auto)")
+    parser.add_argument("--steps", type=int, default=2400)
+    parser.add_argument("--warmup", type=int, default=1000)
+    parser.add_argument("--window", type=int, default=200, help="steps the profiler records, at the end")
+    parser.add_argument("--trace", type=Path, help="write the window's trace here (.json.gz)")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        gaps, prof = profiled(args, Path(tmp))
+        if args.trace:
+            prof.export_chrome_trace(str(Path(tmp) / "trace.json"))
+            with open(Path(tmp) / "trace.json", "rb") as f, gzip.open(args.trace, "wb") as g:
+                shutil.copyfileobj(f, g)
+    deciles = statistics.quantiles(gaps, n=10)
+    print(f"\n{args.seeds} seed(s) of TD3 ({args.hidden}) on {args.env}, {args.device}: a training step took a median "
+          f"of {statistics.median(gaps) * 1e3:.3f} ms (p90 {deciles[-1] * 1e3:.3f} ms) over {len(gaps)} steps, "
+          f"{args.seeds / statistics.median(gaps):,.0f} aggregate steps/s\n")
+    table = prof.key_averages()
+    if args.device == "cuda":
+        print(table.table(sort_by="self_cuda_time_total", row_limit=25))
+    print(table.table(sort_by="self_cpu_time_total", row_limit=25))
+
+
+if __name__ == "__main__":  # (environment workers start by importing this module)
+    main()
