@@ -1,5 +1,6 @@
 """The `device` setting: CPU everywhere, CUDA where a GPU is present (those tests skip elsewhere)."""
 
+import re
 import pytest
 import torch
 from conftest import assert_same_run, train_until_stopped
@@ -26,18 +27,24 @@ def test_cuda_without_a_gpu_is_refused_before_anything_is_written(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-def test_a_run_trained_for_a_gpu_evaluates_on_the_cpu(tmp_path, tiny):
-    """A run directory whose recipe names cuda loads its learners on the CPU, here as on a laptop."""
+@pytest.mark.parametrize("gpu_settings", [{}, {"compile": "cudagraphs"}, {"precision": "tf32"}])
+def test_a_run_trained_for_a_gpu_evaluates_on_the_cpu(tmp_path, tiny, gpu_settings):
+    """A run directory whose recipe names cuda (and settings only a GPU has) loads its learners on the CPU, here
+    as on a laptop."""
     from layered.learner_set import load_learners
 
     recipe = load_recipe("pendulum/tla-c.toml", tiny)
     train(recipe, tmp_path, max_steps=200, progress=False)
     text = (tmp_path / "recipe.toml").read_text().replace('device = "cpu"', 'device = "cuda"')
     assert text.count('device = "cuda"') == 2  # each layer's learner table, as resolved
+    for key, value in gpu_settings.items():
+        text = re.sub(f'{key} = "[a-z0-9]+"', f'{key} = "{value}"', text)
+        assert text.count(f'{key} = "{value}"') == 2
     (tmp_path / "recipe.toml").write_text(text)
     gpu_recipe = load_recipe(tmp_path / "recipe.toml")
     learners = load_learners(gpu_recipe, tmp_path)
     assert all(getattr(lr, "td3", lr).device.type == "cpu" for lr in learners.values())
+    assert all(getattr(lr, "group", None) is None for lr in learners.values())  # acting as a plain TD3 there
 
 
 @CUDA

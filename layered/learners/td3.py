@@ -15,7 +15,7 @@ from torch import nn
 from torch.func import functional_call
 
 from layered.buffer import Batch, ReplayBuffer, Transition
-from layered.learners.base import LEARNERS, Flag, Learner, LearnerConfig, Losses, Whole
+from layered.learners.base import Flag, Learner, LearnerConfig, Losses, Whole
 from layered.learners.precision import autocast, loaded_precision, resolve_precision, update_region
 from layered.outputs import OutputLayout
 
@@ -70,17 +70,25 @@ class TD3Config(LearnerConfig):
     (or started from its weights) keeps that precision wherever it runs."""
     compile: Literal["off", "inductor", "cudagraphs"] = "off"
     """Compile the critic and actor steps with torch.compile: `inductor` (its default mode), or
-    `cudagraphs` (mode reduce-overhead, which also replays the steps as CUDA graphs; GPU only).
-    The first updates then wait for compilation; results match eager ones closely, not bit for bit.
-    In a group (`--seeds`), `cudagraphs` captures the whole update of all its seeds (sampling, both
-    critics, the actor's step, the targets) after three eager updates, as one CUDA graph per kind of
-    update met (with the actor's step or without; every seed taking part, or some left out and put
-    back), one of them replayed per update, and its acting as one more (the very actions eager acting
-    gives); `inductor` is refused there."""
+    `cudagraphs` (GPU only): the update replayed as CUDA graphs. The first updates then wait for
+    compilation or capture; results match eager ones closely, not bit for bit. In a group
+    (`--seeds`), `cudagraphs` captures the whole update of all its seeds (sampling, both critics, the
+    actor's step, the targets) after three eager updates, as one CUDA graph per kind of update met
+    (with the actor's step or without; every seed taking part, or some left out and put back), one of
+    them replayed per update, and its acting as one more (the very actions eager acting gives);
+    `inductor` is refused there. A single run's `td3` learner with `cudagraphs` trains as a group of
+    one in the same way; a single run's `temporl` and `td3-gate` learners compile their steps with
+    torch.compile's reduce-overhead mode instead. A GPU-trained run evaluated on a CPU acts there
+    uncompiled."""
 
 
     def on_device(self, device: str) -> TD3Config:
-        return self.model_copy(update={"device": device})
+        if device != "cpu":
+            return self.model_copy(update={"device": device})
+        # a GPU's settings mean nothing on a CPU, where a GPU-trained run is evaluated (acting is float32 anyway)
+        return self.model_copy(update={"device": device, "compile": "off" if self.compile == "cudagraphs" else
+                                       self.compile, "precision": "float32" if self.precision == "tf32" else
+                                       self.precision})
 
     def unavailable(self) -> list[tuple[str, str]]:
         if torch.cuda.is_available():
@@ -202,9 +210,9 @@ def adam(params: Any, lr: float) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=lr)
 
 
-@LEARNERS.register("td3")
 class TD3(Learner):
-    """Twin critics, delayed actor updates and target policy smoothing."""
+    """Twin critics, delayed actor updates and target policy smoothing (registered as "td3" with its captured
+    form, `layered.learners.td3_captured`)."""
 
     Config = TD3Config
     config: TD3Config
