@@ -98,10 +98,12 @@ def test_its_state_dicts_are_a_plain_td3s_both_ways(captured):
     assert int(again.group.updates[0]) == int(mine.group.updates[0]) == 5  # its count, through a plain TD3's
 
 
+TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "eval.every=150", "eval.episodes=1",
+        "eval.fresh_episodes=1"]
+
+
 def test_a_run_through_it_stopped_at_an_episode_end_resumes_to_the_same_files(captured, tmp_path, monkeypatch):
-    recipe = load_recipe(PENDULUM / "td3.toml", ["learner.hidden=[32, 32]", "learner.batch_size=32",
-                                                 "train.warmup=50", "eval.every=150", "eval.episodes=1",
-                                                 "eval.fresh_episodes=1"])
+    recipe = load_recipe(PENDULUM / "td3.toml", TINY)
     name = recipe.layers[0].name
     built = build_learners(recipe)[name]
     assert isinstance(built, CapturedTD3) and built.group is not None  # (the run below trains through one)
@@ -116,3 +118,17 @@ def test_a_run_through_it_stopped_at_an_episode_end_resumes_to_the_same_files(ca
     monkeypatch.setattr(td3_captured, "captures", lambda config, device: True)
     train(recipe, out, max_steps=600, progress=False, label="x", resume=True)
     assert_same_run(tmp_path / "whole", out)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
+def test_a_captured_run_on_the_gpu_trains_through_a_group_of_one_and_resumes_to_the_same_files(tmp_path, monkeypatch):
+    recipe = load_recipe(PENDULUM / "td3.toml", [*TINY, "learner.device=cuda", "learner.compile=cudagraphs"])
+    built = build_learners(recipe)[recipe.layers[0].name]
+    assert isinstance(built, CapturedTD3) and built.group is not None
+    train(recipe, tmp_path / "whole", max_steps=600, progress=False, label="x")
+    stop_at_episode_end(monkeypatch, 2)
+    with pytest.raises(Stopped):
+        train(recipe, tmp_path / "stopped", max_steps=600, progress=False, label="x")
+    monkeypatch.undo()
+    train(recipe, tmp_path / "stopped", max_steps=600, progress=False, label="x", resume=True)
+    assert_same_run(tmp_path / "whole", tmp_path / "stopped")
