@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from conftest import assert_same_run, stop_at_episode_end
+from conftest import assert_same_run, assert_same_state, stop_at_episode_end
 
 import layered.learners.td3_captured as td3_captured
 from layered import load_recipe
@@ -76,6 +76,24 @@ def test_with_its_update_captured_it_acts_stores_and_updates_as_a_group_of_one(c
     obs = transitions(1, seed=1)[0].obs
     for explore in (False, True):
         assert np.array_equal(mine.act(obs, explore), group.act(obs[None], explore)[0])
+
+
+def test_weights_loaded_make_no_group_and_go_on_into_the_group_made_later(captured):
+    """A group of many seeds loads weights into its seeds' learners before stacking them: they make no group of
+    one (and no replay buffer) of their own; a learner's group, once made, holds what was loaded."""
+    trained = learner()
+    for t in transitions(30):
+        trained.observe(t)
+    for _ in range(4):
+        trained.update()
+    started = learner(seed=9)
+    started.load_state_dict(trained.state_dict())
+    assert started._group is None
+    assert_same_state(started.state_dict(), trained.state_dict(), "loaded")  # (held by its own networks)
+    assert started.group is not None
+    mine, theirs = started.state_dict(), trained.state_dict()
+    for part in ("actor", "critic", "actor_target", "critic_target", "actor_opt", "critic_opt", "updates"):
+        assert_same_state(mine[part], theirs[part], part)
 
 
 def test_its_state_dicts_are_a_plain_td3s_both_ways(captured):

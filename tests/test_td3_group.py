@@ -154,3 +154,21 @@ def test_bfloat16_rounds_the_groups_products_and_float32_does_not():
         losses.append(group.update()["critic"][0])
     assert torch.equal(losses[0], losses[1])
     assert not torch.equal(losses[0], losses[2]) and torch.allclose(losses[0], losses[2], rtol=5e-2)
+
+
+def test_a_group_of_learners_started_from_weights_keeps_their_moments_and_counts():
+    """As a single run started from a checkpoint's weights keeps its optimisers' moments and its update count."""
+    from conftest import assert_same_state
+
+    trained = TD3Group(learners([5]))
+    fill(trained, [5])
+    for _ in range(4):
+        trained.update()
+    state = trained.seed_state_dict(0)
+    started = learners([0, 1])
+    started[0].load_state_dict(state)
+    group = TD3Group(started)
+    mine = group.seed_state_dict(0)
+    for part in ("actor", "critic", "actor_target", "critic_target", "actor_opt", "critic_opt", "updates"):
+        assert_same_state(mine[part], state[part], part)
+    assert group.seed_state_dict(1)["critic_opt"]["state"] == {} and int(group.updates[1]) == 0  # a new one's

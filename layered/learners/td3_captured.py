@@ -70,21 +70,22 @@ class CapturedTD3(TD3):
         losses = group.update()
         return None if losses is None else {name: values[0] for name, (values, _) in losses.items()}
 
+    # Until its group is made, the learner's own networks and optimisers hold its state (weights loaded into
+    # them go on into the group when it is made), so that loading and saving weights make no group.
+
     def policy(self) -> nn.Module:
-        if (group := self.group) is not None:
-            self.actor.load_state_dict(group.seed_state_dict(0)["actor"])  # (the group holds the weights)
+        if self._group is not None:
+            self.actor.load_state_dict(self._group.seed_state_dict(0)["actor"])  # (the group holds the weights)
         return super().policy()
 
     def state_dict(self) -> dict[str, Any]:
-        if (group := self.group) is None:
-            return super().state_dict()
-        return group.seed_state_dict(0)
+        return super().state_dict() if self._group is None else self._group.seed_state_dict(0)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         super().load_state_dict(state)  # (the precision it was trained in, kept as TD3 keeps it)
-        if (group := self.group) is not None:
-            group.load_seed_state_dict(0, state)
-            group.precision = self.precision
+        if self._group is not None:
+            self._group.load_seed_state_dict(0, state)
+            self._group.precision = self.precision
 
     @property
     def replays(self) -> dict[str, Any]:

@@ -68,8 +68,9 @@ class TD3Group:
     loss_names = TD3.loss_names
 
     def __init__(self, learners: Sequence[TD3], seed: int = 0) -> None:
-        """Stack `learners` (new ones, of the same spaces and settings, one per seed); `seed` seeds the
-        group's own generators (minibatch indices, smoothing, exploration and warm-up draws)."""
+        """Stack `learners` (of the same spaces and settings, one per seed: new ones, or ones started from
+        weights, whose optimiser moments and update counts the group takes too); `seed` seeds the group's own
+        generators (minibatch indices, smoothing, exploration and warm-up draws)."""
         first = learners[0]
         self.config: TD3Config = first.config
         if self.config.compile == "inductor" or self.config.actor_anchor:
@@ -113,6 +114,8 @@ class TD3Group:
         self._act_obs = torch.zeros((self.k, 1, self.obs_dim), device=self.device)
         self._graphed_act = None if self.config.compile == "off" else GraphedStep(
             lambda: self.actions(self._act_obs, self.actor)[:, 0], self.device)
+        for k, learner in enumerate(learners):  # and what learners started from weights hold besides them: their
+            self.load_seed_state_dict(k, TD3.state_dict(learner))  # moments and counts, as a single run keeps them
 
     def actions(self, obs: torch.Tensor, net: StackedMLP, seeds: torch.Tensor | None = None) -> torch.Tensor:
         """`net`'s actions for `obs` ([K, batch, obs], or those of `seeds`), squashed into the action bounds as the
