@@ -113,12 +113,13 @@ class StackedAdam:
         """torch's fused Adam on the given seeds' slices of every parameter, each slice with its own count."""
         if not seeds:
             return
+        every = len(seeds) == self._counts.shape[1]
         slices: list[list[torch.Tensor]] = [[], [], [], [], []]  # params, grads, moments, squared moments, counts
         for j, (p, m, v) in enumerate(zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True)):
             assert p.grad is not None, "step follows a backward pass through every parameter"
-            for k in seeds:
-                for out, t in zip(slices, (p, p.grad, m, v, self._counts[j]), strict=True):
-                    out.append(t[k])
+            for out, t in zip(slices, (p, p.grad, m, v, self._counts[j]), strict=True):
+                views = t.unbind(0)  # (every seed's slice at one call: a Python index per slice cost more than Adam)
+                out.extend(views if every else [views[k] for k in seeds])
         params, grads, exp_avg, exp_avg_sq, counts = slices
         adam_update(params, grads, exp_avg, exp_avg_sq, [], counts, fused=True, amsgrad=False, beta1=self.beta1,
                     beta2=self.beta2, lr=self.lr, weight_decay=0.0, eps=self.eps, maximize=False)
