@@ -47,6 +47,7 @@ DecisionPath = Sequence[tuple[np.ndarray, float, int]]
 Mask = np.ndarray | torch.Tensor
 """Which seeds take part: [K] booleans on the host, or [K] 0s and 1s on the device (inside a captured step)."""
 
+
 class Variant(NamedTuple):
     """Which captured update a step replays: with the actor's step or not, and whether the critics' and the
     actor's masks hold every seed (then Adam has no left-out seed to put back: a common case, and a cheaper
