@@ -18,9 +18,10 @@ Pendulum-v1; `--hidden`, default 400-300; batch 256):
 
 A fourth part, **targets**, measures the figures the vectorised engine is held to, each against what
 it must reach, in one table: one TD3 seed on HalfCheetah-v5 with 256-256 networks (the best of the
-single run's `--modes` and a group of one's `--group-modes`; LeanRL's published 936 steps/s on an
-H100), `--target-seeds` (32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s) and as
-many seeds of the real-time Hopper TLA recipe (10,000), the groups' environments in `--group-workers`.
+single run's `--modes` and a group of one's, over training steps alone as LeanRL's published 936
+steps/s on an H100 are, and a group of one's `--group-modes` with its evaluations), `--target-seeds`
+(32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s) and as many seeds of the real-time
+Hopper TLA recipe (10,000), the groups' environments in `--group-workers`.
 A failed setting is a row that says why; the others still run.
 
 The rates of the sweep, group and targets parts are read from progress lines, and each interval between
@@ -154,6 +155,20 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
     return {"seeds": seeds, "per_seed": rate, "aggregate": rate * seeds, "wall_seconds": wall}
 
 
+def training_steps(device: str, env: str, hidden: str, steps: int, warmup: int) -> float:
+    """A group of one's steps/s over its training steps alone (its evaluations and checkpoints beyond the run),
+    timed step by step by `gpu_profile.py --window 0` in a process of its own."""
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_profile.py"), "--device", device,
+                           "--env", env, "--hidden", hidden, "--steps", str(steps), "--warmup", str(warmup),
+                           "--window", "0"], capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise Failed(_last_line(proc.stderr))
+    rate = re.search(r"([\d,]+) aggregate steps/s", proc.stdout)
+    if rate is None:
+        raise Failed(f"no rate in: {_last_line(proc.stdout)}")
+    return float(rate.group(1).replace(",", ""))
+
+
 def settled_rate(log: str) -> float:
     """The median steps/s of a run's progress lines, leaving out each phase's warm-up intervals (the layer
     acts at random without updating) and its first interval with updates (which starts them, and compiles)."""
@@ -191,10 +206,12 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
 
     one = "one TD3 seed, HalfCheetah-v5, 256-256"
     for mode in args.modes.split(","):
-        measured(one, f"single run, compile {mode}", 936,
+        measured(one, f"single run, compile {mode}, training steps alone", 936,
                  lambda mode=mode: one_seed_child(args, mode, "HalfCheetah-v5", "256,256")["steps_per_second"])
+    measured(one, f"group of 1, compile {'cudagraphs' if args.device == 'cuda' else 'off'}, training steps alone",
+             936, lambda: training_steps(args.device, "HalfCheetah-v5", "256,256", args.steps, args.warmup))
     for mode in args.group_modes.split(","):
-        measured(one, f"group of 1, compile {mode}", 936,
+        measured(one, f"group of 1, compile {mode}, with evaluations", 936,
                  lambda mode=mode: group(args.device, 1, None, "HalfCheetah-v5", "256,256", args.steps, args.warmup,
                                          every(args), mode, "0", [])["aggregate"])
     for what, recipe, env, settings, needed in (

@@ -2,9 +2,11 @@
 
 Trains the benchmark's TD3 recipe (see `gpu.py`) as a group with its evaluations and checkpoints moved
 beyond the run, so that the steps timed are training steps alone (acting, the environments' step, storing,
-the update). Prints the median and 90th percentile of the time per step over the steps with updates before
-the profiler's window, and the window's kernels (GPU time) and host operations (CPU time), in tables; writes
-the window's trace (Chrome format, gzipped) beside them with `--trace`.
+the update), as LeanRL's published rates are. Prints the median and 90th percentile of the time per step
+over the steps with updates before the profiler's window, and the window's kernels (GPU time) and host
+operations (CPU time), in tables; writes the window's trace (Chrome format, gzipped) beside them with
+`--trace`. With `--window 0` nothing is profiled: the steps are timed alone (`gpu.py --parts targets`
+takes a group of one's rate so).
 
     python benchmarks/gpu_profile.py                                   # one HalfCheetah-v5 seed, 256-256
     python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto
@@ -14,6 +16,7 @@ the window's trace (Chrome format, gzipped) beside them with `--trace`.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gzip
 import shutil
 import statistics
@@ -33,20 +36,24 @@ from layered import progress
 from layered.cli import main as layered
 
 
-def profiled(args: argparse.Namespace, tmp: Path) -> tuple[list[float], torch.profiler.profile]:
-    """Train the group; the times between its steps, and the profiler that recorded the last `--window` steps."""
+def profiled(args: argparse.Namespace, tmp: Path) -> tuple[list[float], torch.profiler.profile | None]:
+    """Train the group; the times between its steps, and the profiler that recorded the last `--window` steps
+    (None for a window of none)."""
     recipe = tmp / "td3.toml"
     mode = "cudagraphs" if args.device == "cuda" else "off"
     recipe.write_text(tomli_w.dumps(td3_recipe(args.env, args.hidden, args.steps, args.warmup, 10 * args.steps,
                                                compile=mode)))
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if args.device == "cuda" else [])
-    wait = args.steps - args.window - 20
+    wait = args.steps - args.window - 20 if args.window else args.steps
     stamps: list[float] = []
     advance = progress.Progress.advance
-    with profile(activities=activities, schedule=schedule(wait=wait, warmup=20, active=args.window)) as prof:
+    window = (profile(activities=activities, schedule=schedule(wait=wait, warmup=20, active=args.window))
+              if args.window else contextlib.nullcontext())
+    with window as prof:
         def stepped(bar: progress.Progress, steps: int) -> None:
             advance(bar, steps)
-            prof.step()
+            if prof is not None:
+                prof.step()
             stamps.append(time.perf_counter())
 
         progress.Progress.advance = stepped  # type: ignore[method-assign,assignment]
@@ -68,12 +75,12 @@ def main() -> None:
     parser.add_argument("--workers", default="0", help="env.workers (0: in this process; auto)")
     parser.add_argument("--steps", type=int, default=2400)
     parser.add_argument("--warmup", type=int, default=1000)
-    parser.add_argument("--window", type=int, default=200, help="steps the profiler records, at the end")
+    parser.add_argument("--window", type=int, default=200, help="steps the profiler records, at the end (0: none)")
     parser.add_argument("--trace", type=Path, help="write the window's trace here (.json.gz)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         gaps, prof = profiled(args, Path(tmp))
-        if args.trace:
+        if args.trace and prof is not None:
             prof.export_chrome_trace(str(Path(tmp) / "trace.json"))
             with open(Path(tmp) / "trace.json", "rb") as f, gzip.open(args.trace, "wb") as g:
                 shutil.copyfileobj(f, g)
@@ -81,6 +88,8 @@ def main() -> None:
     print(f"\n{args.seeds} seed(s) of TD3 ({args.hidden}) on {args.env}, {args.device}: a training step took a median "
           f"of {statistics.median(gaps) * 1e3:.3f} ms (p90 {deciles[-1] * 1e3:.3f} ms) over {len(gaps)} steps, "
           f"{args.seeds / statistics.median(gaps):,.0f} aggregate steps/s\n")
+    if prof is None:
+        return
     table = prof.key_averages()
     if args.device == "cuda":
         print(table.table(sort_by="self_cuda_time_total", row_limit=25))
