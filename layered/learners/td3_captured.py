@@ -6,7 +6,7 @@ updates) as one CUDA graph, captures acting as another, and sends observations a
 page-locked memory, so that nothing waits for the update in flight. A single TD3 learner compiled by
 torch.compile (mode reduce-overhead) replays its critic and actor steps as two graphs, but samples with
 indices made on the host, acts eagerly and copies from pageable memory: on an H200 one HalfCheetah-v5
-seed's training steps ran at 284 steps/s that way, and at 941 as a group of one in the same call. So this learner
+seed's training steps ran at 284 steps/s that way, and at 941 as a group of one on the same machine. So this learner
 hands its networks to a group of one, and acts, stores and updates through it; its state dicts are the
 single learner's (`TD3Group.seed_state_dict`), so its checkpoints load into a plain TD3 anywhere (a CPU
 evaluating a GPU-trained run). With `compile` off or `inductor` it is TD3 as it is.
