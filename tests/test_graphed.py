@@ -142,6 +142,19 @@ def test_the_update_on_host_masks_computes_only_the_seeds_that_take_part():
         assert products and set(products) == {seeds}
 
 
+def test_acting_through_a_graph_per_number_of_observations_gives_the_eager_actions():
+    """On a CPU the graphs run eagerly: the plumbing (a buffer and a graph per n, the actions read out of it)
+    is what is checked here; the capture, on a GPU below."""
+    eager, graphed = TD3Group(learners([0, 1, 2])), TD3Group(learners([0, 1, 2]))
+    graphed._acting = {}
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        obs, lanes = rng.normal(size=(3, eager.obs_dim)), rng.normal(size=(3, 4, eager.obs_dim))
+        assert np.array_equal(eager.act(obs, explore=False), graphed.act(obs, explore=False))
+        assert np.array_equal(eager.greedy(lanes), graphed.greedy(lanes))
+    assert set(graphed._acting) == {1, 4} and all(step.calls == 5 for _, step in graphed._acting.values())
+
+
 def test_a_graphed_step_runs_eagerly_on_a_cpu():
     calls = []
     step = GraphedStep(lambda: calls.append(1) or torch.ones(1), torch.device("cpu"), eager=1)
@@ -252,6 +265,10 @@ def test_a_captured_group_acts_as_the_eager_one_on_the_gpu():
     config = TD3Config(hidden=(64, 64), device="cuda")
     eager = TD3Group(learners([0, 1, 2], config))
     graphed = TD3Group(learners([0, 1, 2], config.model_copy(update={"compile": "cudagraphs"})))
-    for obs in np.random.default_rng(0).normal(size=(8, 3, eager.obs_dim)).astype(np.float32):
+    rng = np.random.default_rng(0)
+    for obs in rng.normal(size=(8, 3, eager.obs_dim)).astype(np.float32):
         assert np.array_equal(eager.act(obs, explore=False), graphed.act(obs, explore=False))
-    assert graphed._graphed_act is not None and graphed._graphed_act.captured
+    for lanes in rng.normal(size=(8, 3, 4, eager.obs_dim)).astype(np.float32):  # an evaluation's, side by side
+        assert np.array_equal(eager.greedy(lanes), graphed.greedy(lanes))
+    assert graphed._acting is not None and set(graphed._acting) == {1, 4}
+    assert all(step.captured for _, step in graphed._acting.values())

@@ -75,7 +75,8 @@ class TD3Config(LearnerConfig):
     (`--seeds`), `cudagraphs` captures the whole update of all its seeds (sampling, both critics, the
     actor's step, the targets) after three eager updates, as one CUDA graph per kind of update met
     (with the actor's step or without; every seed taking part, or some left out and put back), one of
-    them replayed per update, and its acting as one more (the very actions eager acting gives);
+    them replayed per update, and its acting, in training and in evaluations, as one more per number
+    of observations a seed acts on at once (the very actions eager acting gives);
     `inductor` is refused there. A single run's `td3` learner with `cudagraphs` trains as a group of
     one in the same way; a single run's `temporl` and `td3-gate` learners compile their steps with
     torch.compile's reduce-overhead mode instead. A GPU-trained run evaluated on a CPU acts there

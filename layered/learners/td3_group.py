@@ -111,10 +111,10 @@ class TD3Group:
         self._masks = torch.zeros((3, self.k), device=self.device)
         self._graphed: dict[Variant, GraphedStep[tuple[torch.Tensor, torch.Tensor | None]]] | None = (
             None if self.config.compile == "off" else {})
-        # and acting, as one more graph: the actor's kernels at one launch, on observations copied in here
-        self._act_obs = torch.zeros((self.k, 1, self.obs_dim), device=self.device)
-        self._graphed_act = None if self.config.compile == "off" else GraphedStep(
-            lambda: self.actions(self._act_obs, self.actor)[:, 0], self.device)
+        # and acting, as one more graph per number of observations a seed acts on at once (one in training, an
+        # evaluation's lanes): the actor's kernels at one launch, on observations copied in (`actor_outputs`)
+        self._acting: dict[int, tuple[torch.Tensor, GraphedStep[torch.Tensor]]] | None = (
+            None if self.config.compile == "off" else {})
         for k, learner in enumerate(learners):  # and what learners started from weights hold besides them: their
             self.load_seed_state_dict(k, TD3.state_dict(learner))  # moments and counts, as a single run keeps them
 
@@ -127,12 +127,7 @@ class TD3Group:
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         """Each seed's action for its observation (`obs`: [K, obs] -> [K, action]); with `explore`,
         Gaussian noise of `exploration_noise` times the half-range, clipped to the bounds."""
-        x = self.staging.put(obs)[:, None]
-        if self._graphed_act is None:
-            action = self.actions(x, self.actor)[:, 0].cpu().numpy()
-        else:
-            self._act_obs.copy_(x)
-            action = self._graphed_act().cpu().numpy()
+        action = self.actor_outputs(self.staging.put(obs)[:, None])[:, 0].cpu().numpy()
         if explore:
             low, high = self.action_space.low, self.action_space.high
             noise = self.rng.normal(0.0, self.config.exploration_noise, action.shape) * (high - low) / 2
@@ -143,7 +138,21 @@ class TD3Group:
     def greedy(self, obs: np.ndarray) -> np.ndarray:
         """Each seed's actions without exploration for `n` observations of its own (`obs`: [K, n, obs] ->
         [K, n, action]): the episodes of an evaluation, played side by side."""
-        return self.actions(self.staging.put(obs), self.actor).cpu().numpy()
+        return self.actor_outputs(self.staging.put(obs)).cpu().numpy()
+
+    def actor_outputs(self, obs: torch.Tensor) -> torch.Tensor:
+        """The actor's actions for `obs` on the device ([K, n, obs]): eagerly, or with `cudagraphs` as the graph
+        captured for n observations per seed (the same kernels, launched at once: the same actions)."""
+        if self._acting is None:
+            return self.actions(obs, self.actor)
+        n = obs.shape[1]
+        if n not in self._acting:
+            with torch.inference_mode(False):  # an ordinary tensor, written in and out of inference mode alike
+                seen = torch.zeros((self.k, n, self.obs_dim), device=self.device)
+            self._acting[n] = (seen, GraphedStep(lambda: self.actions(seen, self.actor), self.device))
+        seen, step = self._acting[n]
+        seen.copy_(obs)
+        return step()
 
     def act_macs(self) -> int:
         """Multiply-accumulates of one seed's action (as a single learner's `act_macs`)."""
