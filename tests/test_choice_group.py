@@ -108,3 +108,21 @@ def single_rows(buffer):
     discount (a skip's action holds its choice last, which the group keeps between action and reward)."""
     fields = buffer.fields()
     return np.concatenate([fields[key].numpy().reshape(len(buffer), -1) for key in buffer.FIELDS], axis=1)
+
+
+def test_a_group_of_learners_started_from_weights_keeps_their_gates_moments_and_td3s_counts():
+    """As a single run started from a checkpoint's weights keeps them (tests/test_td3_group.py: TD3's part)."""
+    from conftest import assert_same_state
+
+    trained = GateTD3Group(learners([4]))
+    for step in range(6):
+        trained.observe(*transitions([4], [1.0] if step % 2 else [-1.0]))
+    for _ in range(4):
+        trained.update(np.array([True]))
+    state = trained.seed_state_dict(0)
+    started = learners([0, 1])
+    started[0].load_state_dict(state)
+    group = GateTD3Group(started)
+    assert_same_state(group.seed_state_dict(0)["choice"], state["choice"], "choice")
+    assert_same_state(group.seed_state_dict(0)["td3"]["updates"], state["td3"]["updates"], "updates")
+    assert group.seed_state_dict(1)["choice"]["opt"]["state"] == {}  # a new one's
