@@ -14,7 +14,6 @@ from gymnasium.spaces import Box
 from pydantic import Field
 
 from layered.buffer import Transition
-from layered.learners.base import LEARNERS
 from layered.learners.choice import TD3WithChoice
 from layered.learners.td3 import TD3Config
 from layered.outputs import OutputLayout
@@ -31,7 +30,6 @@ class GateTD3Config(TD3Config):
     target does, or the first head alone, as the authors' code does."""
 
 
-@LEARNERS.register("td3-gate")
 class GateTD3(TD3WithChoice):
     """TD3 for the proposed action, a two-valued Q-network for the gate (choice 0 defers, 1 commits)."""
 

@@ -77,10 +77,9 @@ class TD3Config(LearnerConfig):
     (with the actor's step or without; every seed taking part, or some left out and put back), one of
     them replayed per update, and its acting, in training and in evaluations, as one more per number
     of observations a seed acts on at once (the very actions eager acting gives);
-    `inductor` is refused there. A single run's `td3` learner with `cudagraphs` trains as a group of
-    one in the same way; a single run's `temporl` and `td3-gate` learners compile their steps with
-    torch.compile's reduce-overhead mode instead. A GPU-trained run evaluated on a CPU acts there
-    uncompiled."""
+    `inductor` is refused there. A single run's learners with `cudagraphs` train as groups of one
+    seed in the same way (`layered.learners.captured`). A GPU-trained run evaluated on a CPU acts
+    there uncompiled."""
 
 
     def on_device(self, device: str) -> TD3Config:
@@ -213,7 +212,7 @@ def adam(params: Any, lr: float) -> torch.optim.Adam:
 
 class TD3(Learner):
     """Twin critics, delayed actor updates and target policy smoothing (registered as "td3" with its captured
-    form, `layered.learners.td3_captured`)."""
+    form, `layered.learners.captured`)."""
 
     Config = TD3Config
     config: TD3Config

@@ -14,7 +14,6 @@ from gymnasium.spaces import Box
 from pydantic import Field
 
 from layered.buffer import Transition
-from layered.learners.base import LEARNERS
 from layered.learners.choice import TD3WithChoice
 from layered.learners.td3 import TD3Config
 from layered.outputs import OutputLayout
@@ -28,7 +27,6 @@ class TempoRLConfig(TD3Config):
     """While exploring, the probability of a uniformly random repeat count."""
 
 
-@LEARNERS.register("temporl")
 class TempoRL(TD3WithChoice):
     """TD3 for the action, a skip Q-network for how long to hold it (choice k: k + 1 periods)."""
 

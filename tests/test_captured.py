@@ -1,7 +1,8 @@
-"""The `td3` learner with its update captured trains as a group of one seed: acting, storing and updating
-through `TD3Group`, its state dicts a plain TD3's, and a run through it resuming exactly. On a CPU the group
-runs eagerly (`captures` stood in for), so what is checked here is the learner's plumbing; the capture itself
-is the group's (tests/test_graphed.py, and test_device.py's compiled learners on a GPU)."""
+"""The learners with their update captured (`td3`, `temporl`, `td3-gate`) train as a group of one seed:
+acting, storing and updating through it, their state dicts a plain learner's, and a run through them resuming
+exactly. On a CPU the group runs eagerly (`captures` stood in for), so what is checked here is the learners'
+plumbing; the capture itself is the group's (tests/test_graphed.py, and test_device.py's compiled learners on a
+GPU)."""
 
 from pathlib import Path
 
@@ -11,7 +12,7 @@ import pytest
 import torch
 from conftest import assert_same_run, assert_same_state, stop_at_episode_end
 
-import layered.learners.td3_captured as td3_captured
+import layered.learners.captured as captured_learners
 from layered import load_recipe
 from layered.buffer import Transition
 from layered.checkpoint import load_checkpoint
@@ -19,7 +20,7 @@ from layered.interrupt import Stopped
 from layered.learner_set import build_learners
 from layered.learners import LEARNERS
 from layered.learners.td3 import TD3, TD3Config
-from layered.learners.td3_captured import CapturedTD3
+from layered.learners.captured import CapturedGateTD3, CapturedTD3, CapturedTempoRL, GroupOfOne
 from layered.learners.td3_group import TD3Group
 from layered.outputs import OutputLayout
 from layered.runs import train
@@ -33,7 +34,7 @@ CONFIG = TD3Config(hidden=(32, 16), batch_size=8, buffer_size=100, critic_warmup
 @pytest.fixture
 def captured(monkeypatch):
     """`td3` learners train through a group of one here, as they do on a GPU with compile = "cudagraphs"."""
-    monkeypatch.setattr(td3_captured, "captures", lambda config, device: True)
+    monkeypatch.setattr(captured_learners, "captures", lambda config, device: True)
 
 
 def learner(cls: type[TD3] = CapturedTD3, seed: int = 4) -> TD3:
@@ -48,7 +49,8 @@ def transitions(n: int, seed: int = 0) -> list[Transition]:
 
 
 def test_td3_is_the_captured_learner_and_without_a_capture_it_is_td3_as_it_is():
-    assert LEARNERS.get("td3") is CapturedTD3
+    assert [LEARNERS.get(kind) for kind in ("td3", "temporl", "td3-gate")] == [CapturedTD3, CapturedTempoRL,
+                                                                              CapturedGateTD3]
     plain, mine = learner(TD3), learner()
     assert mine.group is None
     for t in transitions(20):
@@ -120,20 +122,23 @@ TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50", "
         "eval.fresh_episodes=1"]
 
 
-def test_a_run_through_it_stopped_at_an_episode_end_resumes_to_the_same_files(captured, tmp_path, monkeypatch):
-    recipe = load_recipe(PENDULUM / "td3.toml", TINY)
-    name = recipe.layers[0].name
-    built = build_learners(recipe)[name]
-    assert isinstance(built, CapturedTD3) and built.group is not None  # (the run below trains through one)
+@pytest.mark.parametrize("name", ["td3.toml", "temporl.toml", "tla-joint.toml"])  # TD3, TempoRL, the joint gate
+def test_a_run_through_them_stopped_at_an_episode_end_resumes_to_the_same_files(name, captured, tmp_path,
+                                                                                  monkeypatch):
+    recipe = load_recipe(PENDULUM / name, TINY)
+    built = build_learners(recipe)
+    assert all(isinstance(lr, GroupOfOne) and lr.group is not None for lr in built.values())  # (as the run's are)
     train(recipe, tmp_path / "whole", max_steps=600, progress=False, label="x")
-    final = load_checkpoint(tmp_path / "whole" / "checkpoints" / f"{name}.pt", name)
-    assert final.keys() == learner(TD3).state_dict().keys()  # a plain TD3's checkpoint
+    for layer, mine in built.items():  # each layer's final checkpoint a plain learner's
+        final = load_checkpoint(tmp_path / "whole" / "checkpoints" / f"{layer}.pt", layer)
+        plain = type(mine).Single(mine.obs_space, mine.action_space, mine.layout, mine.config, 0)
+        plain.load_state_dict(final)
     stop_at_episode_end(monkeypatch, 2)
     out = tmp_path / "stopped"
     with pytest.raises(Stopped):
         train(recipe, out, max_steps=600, progress=False, label="x")
     monkeypatch.undo()
-    monkeypatch.setattr(td3_captured, "captures", lambda config, device: True)
+    monkeypatch.setattr(captured_learners, "captures", lambda config, device: True)
     train(recipe, out, max_steps=600, progress=False, label="x", resume=True)
     assert_same_run(tmp_path / "whole", out)
 
