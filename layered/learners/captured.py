@@ -24,7 +24,7 @@ from gymnasium.spaces import Box
 from torch import nn
 
 from layered.buffer import Transition
-from layered.learners.base import LEARNERS, Learner, LearnerConfig, Losses
+from layered.learners.base import LEARNERS, Learner, Losses
 from layered.learners.choice import TD3WithChoice
 from layered.learners.choice_group import GateTD3Group, TempoRLGroup
 from layered.learners.gate_td3 import GateTD3
@@ -34,9 +34,9 @@ from layered.learners.temporl import TempoRL
 from layered.outputs import OutputLayout
 
 
-def captures(config: LearnerConfig, device: torch.device) -> bool:
+def captures(config: TD3Config, device: torch.device) -> bool:
     """Whether a learner of `config` on `device` trains through a group of one (its update captured)."""
-    return isinstance(config, TD3Config) and config.compile == "cudagraphs" and device.type == "cuda"
+    return config.compile == "cudagraphs" and device.type == "cuda"
 
 
 class GroupOfOne(Learner):
@@ -48,7 +48,8 @@ class GroupOfOne(Learner):
     Single: ClassVar[type[Learner]]
     Group: ClassVar[Any]  # a group class: (learners, seed) -> the group
 
-    def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: Any, seed: int) -> None:
+    def __init__(self, obs_space: Box, action_space: Box, layout: OutputLayout, config: TD3Config, seed: int
+                 ) -> None:
         super().__init__(obs_space, action_space, layout, config, seed)  # (the single learner's, next in line)
         self._seed = seed
         self._captured = captures(config, self.device)

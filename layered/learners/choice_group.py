@@ -38,7 +38,7 @@ class ChoiceGroup:
         widths = (td3.obs_dim, td3.act_dim, 1, 1, td3.obs_dim, 1, 1)
         self.replay = StackedReplay(td3.k, td3.config.buffer_size, widths, td3.device)
         for k, choice in enumerate(singles):  # (a choice started from weights brings its moments, as TD3's do)
-            self.load_seed_state_dict(k, choice.state_dict())
+            self.opt.load_seed_state(k, choice.opt.state_dict())
 
     @torch.inference_mode()
     def choose(self, obs: np.ndarray, action: np.ndarray, epsilon: float, rng: np.random.Generator) -> np.ndarray:

@@ -115,8 +115,10 @@ class TD3Group:
         # evaluation's lanes): the actor's kernels at one launch, on observations copied in (`actor_outputs`)
         self._acting: dict[int, tuple[torch.Tensor, GraphedStep[torch.Tensor]]] | None = (
             None if self.config.compile == "off" else {})
-        for k, learner in enumerate(learners):  # and what learners started from weights hold besides them: their
-            self.load_seed_state_dict(k, TD3.state_dict(learner))  # moments and counts, as a single run keeps them
+        for k, learner in enumerate(learners):  # learners started from weights bring their moments and counts too,
+            self.actor_opt.load_seed_state(k, learner.actor_opt.state_dict())  # as a single run keeps them
+            self.critic_opt.load_seed_state(k, learner.critic_opt.state_dict())
+            self.updates[k] = learner.updates
 
     def actions(self, obs: torch.Tensor, net: StackedMLP, seeds: torch.Tensor | None = None) -> torch.Tensor:
         """`net`'s actions for `obs` ([K, batch, obs], or those of `seeds`), squashed into the action bounds as the
@@ -186,13 +188,13 @@ class TD3Group:
         delayed = rows & (self.updates % self.config.policy_delay == 0)
         acting = delayed & (self.updates > self.config.critic_warmup)
         with_actor = bool(acting.any())
+        variant = Variant(with_actor, bool(rows.all()), with_actor and bool(acting.all()))
         with update_region(self.precision):
             if self._graphed is None:
-                critic, actor = self._update_step(rows, acting, delayed, with_actor)
+                critic, actor = self._update_step(rows, acting, delayed, variant)
             else:
                 self._masks.copy_(self.staging.put(np.stack([rows, acting, delayed])))
-                critic, actor = self.captured_step(Variant(with_actor, bool(rows.all()),
-                                                           with_actor and bool(acting.all())))()
+                critic, actor = self.captured_step(variant)()
         losses = {"critic": (critic, rows)}
         if actor is not None:
             losses["actor"] = (actor, acting)
@@ -205,20 +207,20 @@ class TD3Group:
         if variant not in self._graphed:
             rows, acting, delayed = self._masks
             self._graphed[variant] = GraphedStep(
-                functools.partial(self._update_step, rows, acting, delayed, variant.with_actor, variant),
+                functools.partial(self._update_step, rows, acting, delayed, variant),
                 self.device, [self.torch_rng])
         return self._graphed[variant]
 
-    def _update_step(self, rows: Mask, acting: Mask, delayed: Mask, with_actor: bool, variant: Variant | None = None
+    def _update_step(self, rows: Mask, acting: Mask, delayed: Mask, variant: Variant
                      ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """A critic step of the `rows` seeds, an actor step of the `acting` ones (`with_actor`), and the
+        """A critic step of the `rows` seeds, an actor step of the `acting` ones (if `variant` has one), and the
         critics' targets of the `delayed` ones that do not act yet followed; the losses per seed. The masks
-        are on the host, or on the device for a step that never reads them back (a captured one, whose
-        `variant` says which of its masks hold every seed)."""
+        are on the host, or on the device for a step that never reads them back (a captured one, which
+        `variant` tells which of its masks hold every seed)."""
         batch = self.sample()
         noise = torch.randn(batch[1].shape, generator=self.torch_rng, device=self.device)
-        critic = self.critic_step(batch, noise, rows, variant is not None and variant.every_critic)
-        actor = self.actor_step(batch[0], acting, variant is not None and variant.every_actor) if with_actor else None
+        critic = self.critic_step(batch, noise, rows, variant.every_critic)
+        actor = self.actor_step(batch[0], acting, variant.every_actor) if variant.with_actor else None
         if isinstance(delayed, torch.Tensor) or (delayed & ~acting).any():
             follow(*self._critic_pairs, (self._weights(delayed) - self._weights(acting)) * self.config.tau)
         return critic, actor
