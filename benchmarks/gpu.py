@@ -8,8 +8,9 @@ Pendulum-v1; `--hidden`, default 400-300; batch 256):
   CUDA-graph recording happen there; their time is reported apart).
 * **sweep**: `layered sweep --jobs N --device cuda` with N seeds at once, for each N of `--jobs`,
   with `--no-mps` (the processes take turns on the GPU) and under CUDA MPS (which the sweep starts
-  where it can); per-seed steps/s are read from each run's train.log (the rate between
-  evaluations, warm-up and the first interval with updates left out), and their sum is the aggregate.
+  where it can), or one of them (`--mps no` or `yes`); per-seed steps/s are read from each run's
+  train.log (the rate between evaluations, warm-up and the first interval with updates left out), and
+  their sum is the aggregate.
 * **group**: `layered train --seeds K --device cuda`, K seeds as one computation in one process, for
   each K of `--groups`, its update eager and captured as CUDA graphs (`--group-modes`), its
   environments stepped in the training process or in worker processes (`--group-workers`), on the
@@ -20,8 +21,8 @@ A fourth part, **targets**, measures the figures the vectorised engine is held t
 it must reach, in one table: one TD3 seed on HalfCheetah-v5 with 256-256 networks (the best of the
 single run's `--modes` and a group of one's, over training steps alone as LeanRL's published 936
 steps/s on an H100 are, and a group of one's `--group-modes` with its evaluations), `--target-seeds`
-(32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s) and as many seeds of the real-time
-Hopper TLA recipe (10,000), the groups' environments in `--group-workers`.
+(32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s; over training steps alone too) and
+as many seeds of the real-time Hopper TLA recipe (10,000), the groups' environments in `--group-workers`.
 A failed setting is a row that says why; the others still run.
 
 The rates of the sweep, group and targets parts are read from progress lines, and each interval between
@@ -155,12 +156,14 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
     return {"seeds": seeds, "per_seed": rate, "aggregate": rate * seeds, "wall_seconds": wall}
 
 
-def training_steps(device: str, env: str, hidden: str, steps: int, warmup: int) -> float:
-    """A group of one's steps/s over its training steps alone (its evaluations and checkpoints beyond the run),
+def training_steps(device: str, env: str, hidden: str, steps: int, warmup: int, seeds: int = 1, workers: str = "0"
+                   ) -> float:
+    """A group's aggregate steps/s over its training steps alone (its evaluations and checkpoints beyond the run),
     timed step by step by `gpu_profile.py --window 0` in a process of its own."""
     proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_profile.py"), "--device", device,
                            "--env", env, "--hidden", hidden, "--steps", str(steps), "--warmup", str(warmup),
-                           "--window", "0"], capture_output=True, text=True, check=False)
+                           "--seeds", str(seeds), "--workers", workers, "--window", "0"],
+                          capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise Failed(_last_line(proc.stderr))
     rate = re.search(r"([\d,]+) aggregate steps/s", proc.stdout)
@@ -208,7 +211,8 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
     for mode in args.modes.split(","):
         measured(one, f"single run, compile {mode}, training steps alone", 936,
                  lambda mode=mode: one_seed_child(args, mode, "HalfCheetah-v5", "256,256")["steps_per_second"])
-    measured(one, f"group of 1, compile {'cudagraphs' if args.device == 'cuda' else 'off'}, training steps alone",
+    graphed = "cudagraphs" if args.device == "cuda" else "off"  # (what gpu_profile.py trains with)
+    measured(one, f"group of 1, compile {graphed}, training steps alone",
              936, lambda: training_steps(args.device, "HalfCheetah-v5", "256,256", args.steps, args.warmup))
     for mode in args.group_modes.split(","):
         measured(one, f"group of 1, compile {mode}, with evaluations", 936,
@@ -221,6 +225,10 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
              10_000)):
         for mode in args.group_modes.split(","):
             for workers in args.group_workers.split(","):
+                if recipe is None and mode == graphed:
+                    measured(what, f"compile {mode}, env.workers {workers}, training steps alone", needed,
+                             lambda workers=workers: training_steps(args.device, env, "400,300", args.steps,
+                                                                    args.warmup, k, workers))
                 measured(what, f"compile {mode}, env.workers {workers}", needed,
                          lambda recipe=recipe, env=env, settings=settings, mode=mode, workers=workers: group(
                              args.device, k, recipe, env, "400,300", args.steps, args.warmup, every(args), mode,
@@ -272,6 +280,7 @@ def main() -> None:
     parser.add_argument("--eval-every", type=int,
                         help="steps between evaluations of one episode (default a sixth of a run), in each rate's time")
     parser.add_argument("--settle", type=int, default=200, help="updates left out of the rate (default 200)")
+    parser.add_argument("--mps", default="no,yes", help="the sweep part without and with CUDA MPS (no,yes; or one)")
     parser.add_argument("--groups", default="1,4,16,64", help="seeds trained as one group, comma-separated")
     parser.add_argument("--env", default="Pendulum-v1", help="the benchmark recipe's environment (e.g. Hopper-v5)")
     parser.add_argument("--hidden", default="400,300", help="its hidden layer widths (e.g. 256,256)")
@@ -309,7 +318,7 @@ def main() -> None:
     if "sweep" in args.parts:
         print("\n| seeds at once | CUDA MPS | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|---|")
         for jobs in map(int, args.jobs.split(",")):
-            for mps in (False, True) if jobs > 1 else (False,):
+            for mps in [m == "yes" for m in args.mps.split(",")] if jobs > 1 else (False,):
                 row = sweep(args.device, jobs, args.env, args.hidden, args.steps, args.warmup, every(args), mps)
                 seeds = ", ".join(f"{r:.0f}" for r in row["per_seed"])
                 print(f"| {jobs} | {'yes' if mps else 'no'} | {row['aggregate']:.0f} | {seeds} | "

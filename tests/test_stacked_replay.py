@@ -61,3 +61,24 @@ def test_staged_arrays_reach_the_gpu_in_order_though_they_share_one_buffer():
     for t in range(50):
         total += staging.put(np.full(4, t, np.float32))  # queued behind the copy, before the next one
     assert total.tolist() == [sum(range(50))] * 4
+
+
+def replayed(device: str, captured: bool) -> StackedReplay:
+    """Four seeds, three slots each: 24 adds of every seed's rows and of masks (all, none, some) drawn at random,
+    so that each kind of store is captured (after its first eager calls) and replayed, and the buffers wrap."""
+    replay = StackedReplay(4, 3, (2, 1), torch.device(device), captured=captured)
+    rng = np.random.default_rng(0)
+    for t in range(24):
+        rows = None if t % 3 == 0 else rng.random(4) < 0.6 if t % 3 == 1 else np.ones(4, bool) if t % 6 == 2 else None
+        replay.add(rng.normal(size=(4, 3)).astype(np.float32), rows)
+    return replay
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=cuda)])
+def test_a_captured_store_holds_what_an_eager_one_holds(device):
+    captured, eager = replayed(device, True), replayed("cpu", False)
+    assert captured.stored.tolist() == eager.stored.tolist()
+    for name in ("_rows", "sizes", "_next"):
+        assert torch.equal(getattr(captured, name).cpu(), getattr(eager, name))
+    if device == "cuda":
+        assert all(step.captured for step in captured._stores.values()) and len(captured._stores) == 2

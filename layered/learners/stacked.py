@@ -4,6 +4,7 @@ each stacked along a leading seed axis so that one operation serves every seed a
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -13,6 +14,7 @@ from torch import nn
 from torch.optim.adam import adam as adam_update
 
 from layered.buffer import put_rows, rows_since
+from layered.learners.graphed import GraphedStep
 from layered.learners.staging import Staging
 
 
@@ -173,7 +175,10 @@ class StackedReplay:
     """K seeds' replay buffers as one `[K, capacity, row]` tensor of rows cut into fields of the given
     widths; each seed samples uniformly from its own stored rows, all in one gather."""
 
-    def __init__(self, k: int, capacity: int, widths: Sequence[int], device: torch.device) -> None:
+    def __init__(self, k: int, capacity: int, widths: Sequence[int], device: torch.device,
+                 captured: bool = False) -> None:
+        """`captured`: on a GPU, store as a CUDA graph (one for every seed's rows, one for a mask's), a launch
+        instead of the eight of an eager store; on a CPU it changes nothing."""
         self.k, self.capacity = k, capacity
         self._cuts = np.cumsum((0, *widths)).tolist()
         self._rows = torch.empty((k, capacity, self._cuts[-1]), device=device)
@@ -181,23 +186,33 @@ class StackedReplay:
         self._next = torch.zeros(k, dtype=torch.long, device=device)
         self._seeds = torch.arange(k, device=device)
         self._staging = Staging(device)
+        self._stores: dict[bool, GraphedStep[None]] | None = {} if captured and device.type == "cuda" else None
         self.stored = np.zeros(k, np.int64)  # rows added per seed, known on the host
 
     def add(self, data: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Store row `data[k]` ([K, row]) for every seed, or only for the seeds of the `rows` mask. Nothing is
-        read back, so that on a GPU the host goes on at once: the mask travels with the rows, and a seed left
-        out has its next slot written over with what it holds and its counts advanced by 0."""
-        step: int | torch.Tensor = 1  # each seed's count advances by 1, or by its mask
-        if rows is None or rows.all():
-            new = self._staging.put(data)
-        else:
-            staged = self._staging.put(np.concatenate([data, rows[:, None]], axis=1, dtype=np.float32))
+        read back, so that on a GPU the host goes on at once: the mask travels with the rows."""
+        every = rows is None or bool(rows.all())
+        staged = self._staging.put(data if every else np.concatenate([data, rows[:, None]], axis=1, dtype=np.float32))
+        if self._stores is None:
+            self._store(staged, every)
+        else:  # (on a GPU the staged tensor is the same at every call of its shape: the graph reads it there)
+            if every not in self._stores:
+                self._stores[every] = GraphedStep(functools.partial(self._store, staged, every), self._rows.device)
+            self._stores[every]()
+        self.stored += 1 if rows is None else rows
+
+    def _store(self, staged: torch.Tensor, every: bool) -> None:
+        """Write the staged rows (with the mask as a last column unless `every`) into each seed's next slot: a
+        seed left out has its next slot written over with what it holds and its counts advanced by 0."""
+        step: int | torch.Tensor = 1
+        new = staged
+        if not every:
             step = staged[:, -1] > 0
             new = torch.where(step[:, None], staged[:, :-1], self._rows[self._seeds, self._next])
         self._rows[self._seeds, self._next] = new
         self._next.add_(step).remainder_(self.capacity)
         self.sizes.add_(step).clamp_(max=self.capacity)
-        self.stored += 1 if rows is None else rows
 
     def sample(self, batch: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
         """A minibatch per seed, each field `[K, batch, width]` (garbage for a seed with nothing stored)."""

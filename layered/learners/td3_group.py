@@ -101,7 +101,8 @@ class TD3Group:
         self._low, self._high = first._low, first._high
         self.obs_dim, self.act_dim = first.obs_space.shape[0], first.action_space.shape[0]
         widths = (self.obs_dim, self.act_dim, 1, self.obs_dim, 1, 1)  # obs, action, reward, next, not done, discount
-        self.replay = StackedReplay(self.k, self.config.buffer_size, widths, self.device)
+        self.replay = StackedReplay(self.k, self.config.buffer_size, widths, self.device,
+                                    captured=self.config.compile != "off")
         self.torch_rng = torch.Generator(self.device).manual_seed(seed)
         self.staging = Staging(self.device)  # observations and masks on their way to the device
         self.rng = np.random.default_rng(seed)
