@@ -227,7 +227,7 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
             for workers in args.group_workers.split(","):
                 if recipe is None and mode == graphed:
                     measured(what, f"compile {mode}, env.workers {workers}, training steps alone", needed,
-                             lambda workers=workers: training_steps(args.device, env, "400,300", args.steps,
+                             lambda env=env, workers=workers: training_steps(args.device, env, "400,300", args.steps,
                                                                     args.warmup, k, workers))
                 measured(what, f"compile {mode}, env.workers {workers}", needed,
                          lambda recipe=recipe, env=env, settings=settings, mode=mode, workers=workers: group(
