@@ -83,6 +83,12 @@ class ReplayBuffer:
         # not zeros: rows are read only once written, and untouched pages then take no memory.
         self._rows = torch.empty((capacity, ends[-1]), dtype=torch.float32, device=self.device)
 
+    def keep_on_host(self) -> None:
+        """Hold the rows in host memory, untouched: for a buffer that another stands in for (a learner trained
+        through a group of one), which then takes no device memory, nor host memory until written."""
+        self.device = torch.device("cpu")
+        self._rows = torch.empty(self._rows.shape, dtype=self._rows.dtype)
+
     @property
     def stored(self) -> np.ndarray:
         """Transitions added in all, as the one count of `layered.replay_journal`'s K."""

@@ -155,3 +155,19 @@ def test_a_captured_run_on_the_gpu_trains_through_a_group_of_one_and_resumes_to_
     monkeypatch.undo()
     train(recipe, tmp_path / "stopped", max_steps=600, progress=False, label="x", resume=True)
     assert_same_run(tmp_path / "whole", tmp_path / "stopped")
+
+
+@pytest.mark.parametrize("name", ["td3.toml", "temporl.toml", "tla-joint.toml"])
+def test_their_own_buffers_stay_on_the_host_unwritten_where_the_group_keeps_the_replay(name, captured):
+    for mine in build_learners(load_recipe(PENDULUM / name, TINY)).values():
+        own = list(super(GroupOfOne, mine).replays.values())  # (the single learner's buffers)
+        assert own and all(buffer.device.type == "cpu" for buffer in own)
+        assert mine.replays.keys() == {"td3", "choice"} if len(own) == 2 else {"td3"}
+        assert all(theirs is not buffer for theirs in mine.replays.values() for buffer in own)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
+def test_a_captured_learner_on_the_gpu_keeps_one_replay_there():
+    config = TD3Config(hidden=(32, 16), batch_size=8, buffer_size=100, device="cuda", compile="cudagraphs")
+    single = CapturedTD3(OBS, ACTION, OutputLayout(1), config, 0)
+    assert single.buffer._rows.device.type == "cpu" and single.group.replay._rows.device.type == "cuda"

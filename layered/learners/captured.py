@@ -54,6 +54,9 @@ class GroupOfOne(Learner):
         self._seed = seed
         self._captured = captures(config, self.device)
         self._group: Any = None
+        if self._captured:  # (the group keeps the replay: the learner's own buffers would take device memory unused)
+            for buffer in super().replays.values():
+                buffer.keep_on_host()
 
     @property
     def group(self) -> Any:
