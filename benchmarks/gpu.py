@@ -1,7 +1,8 @@
 """TD3 training speed of `layered` on a GPU: eager, compiled and CUDA graphs, and seeds sharing it.
 
 Three parts, each printing a markdown table, on the benchmark's TD3 recipe (`--env`, default
-Pendulum-v1; `--hidden`, default 400-300; batch 256):
+Pendulum-v1; `--hidden`, default 400-300; batch 256), or for the sweep and group parts a recipe file
+(`--recipe`, with `--set` settings: a TLA-C one, say):
 
 * **modes**: one seed with `learner.compile` off (eager), `inductor` and `cudagraphs`, each its own
   process. Steps/s are counted over the updates after the first `--settle` (compilation and
@@ -10,12 +11,15 @@ Pendulum-v1; `--hidden`, default 400-300; batch 256):
   with `--no-mps` (the processes take turns on the GPU) and under CUDA MPS (which the sweep starts
   where it can), or one of them (`--mps no` or `yes`); per-seed steps/s are read from each run's
   train.log (the rate between evaluations, warm-up and the first interval with updates left out), and
-  their sum is the aggregate.
+  their sum is the aggregate; GPU memory per seed is the largest process's peak.
 * **group**: `layered train --seeds K --device cuda`, K seeds as one computation in one process, for
   each K of `--groups`, its update eager and captured as CUDA graphs (`--group-modes`), its
-  environments stepped in the training process or in worker processes (`--group-workers`), on the
-  benchmark's recipe or on `--group-recipe` (with `--set` settings); the rate of its progress
-  lines times K is the aggregate.
+  environments stepped in the training process or in worker processes (`--group-workers`); the rate
+  of its progress lines times K is the aggregate, and its process's peak GPU memory over K the memory
+  per seed.
+
+GPU memory is what the driver reports per process (`nvidia-smi`, polled; the CUDA context included,
+about 0.5 GB a process), so a sweep pays a context per seed and a group one in all (`device_memory.py`).
 
 A fourth part, **targets**, measures the figures the vectorised engine is held to, each against what
 it must reach, in one table: one TD3 seed on HalfCheetah-v5 with 256-256 networks (the best of the
@@ -37,8 +41,11 @@ LeanRL's figure has none, so to compare with it, space the evaluations out (the 
         --group-workers 0 --steps 16000 --eval-every 5000
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 1,4,16,32,64
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --group-workers 0,auto
-    python benchmarks/gpu.py --parts group --groups 32 --group-recipe recipes/hopper/tla-realtime.toml \
+    python benchmarks/gpu.py --parts group --groups 32 --recipe recipes/hopper/tla-realtime.toml \
         --set layers.slow.warmup=500 --set layers.fast.warmup=1000
+    python benchmarks/gpu.py --parts sweep,group --jobs 4,16 --groups 1,4,16,64 --recipe recipes/pendulum/tla-c.toml \
+        --set layers.slow.warmup=250 --set layers.fast.warmup=500 --set eval.every=500 --set eval.episodes=1 \
+        --set eval.fresh_episodes=0 --steps 3000
     python benchmarks/gpu.py --device cpu --modes off,inductor --jobs 1,2 --groups 1,2 --group-modes off --steps 1500
     python benchmarks/gpu.py --device cpu --parts targets --modes off --group-modes off --target-seeds 2 --steps 1500
 
@@ -60,6 +67,7 @@ from pathlib import Path
 from typing import Any
 
 import tomli_w
+from device_memory import DeviceMemory, mib
 
 RECIPE: dict[str, Any] = {
     "env": {"id": "Pendulum-v1"},
@@ -116,22 +124,31 @@ def one_seed(device: str, mode: str, env: str, hidden: str, steps: int, warmup: 
             "wall_seconds": time.perf_counter() - start}
 
 
-def sweep(device: str, jobs: int, env: str, hidden: str, steps: int, warmup: int, every: int, mps: bool
-          ) -> dict[str, Any]:
-    """`layered sweep` with `jobs` seeds at once, under CUDA MPS (which the sweep starts where it can) or
-    with `--no-mps`; per-seed steps/s from each run's train.log."""
+def sweep(device: str, jobs: int, recipe: str | None, env: str, hidden: str, steps: int, warmup: int, every: int,
+          mps: bool, settings: list[str]) -> dict[str, Any]:
+    """`layered sweep` with `jobs` seeds at once of `recipe` (a file, with `settings`) or the benchmark's TD3 recipe,
+    under CUDA MPS (which the sweep starts where it can) or with `--no-mps`; per-seed steps/s from each run's
+    train.log, and the largest process's peak GPU memory."""
     with tempfile.TemporaryDirectory() as tmp:
-        recipe = Path(tmp) / "td3.toml"
-        recipe.write_text(tomli_w.dumps(td3_recipe(env, hidden, steps, warmup, every)))
+        recipe = recipe or _td3_file(tmp, env, hidden, steps, warmup, every)
         start = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "layered.cli", "sweep", str(recipe), "--seeds", str(jobs), "--jobs",
-                        str(jobs), "--device", device, "--out", str(Path(tmp) / "runs"),
-                        *([] if mps else ["--no-mps"])], check=True, capture_output=True)
+        with DeviceMemory() as memory:
+            subprocess.run([sys.executable, "-m", "layered.cli", "sweep", recipe, "--seeds", str(jobs), "--jobs",
+                            str(jobs), "--steps", str(steps), "--device", device, "--out", str(Path(tmp) / "runs"),
+                            *settings, *([] if mps else ["--no-mps"])], check=True, capture_output=True)
         wall = time.perf_counter() - start
         rates = []
         for log in sorted(Path(tmp, "runs").rglob("train.log")):
             rates.append(settled_rate(log.read_text()))
-    return {"jobs": jobs, "per_seed": rates, "aggregate": sum(rates), "wall_seconds": wall}
+    return {"jobs": jobs, "per_seed": rates, "aggregate": sum(rates), "wall_seconds": wall,
+            "mib_per_seed": memory.largest()}
+
+
+def _td3_file(folder: str, env: str, hidden: str, steps: int, warmup: int, every: int) -> str:
+    """The benchmark's TD3 recipe written as a file in `folder`; its path."""
+    path = Path(folder) / "td3.toml"
+    path.write_text(tomli_w.dumps(td3_recipe(env, hidden, steps, warmup, every)))
+    return str(path)
 
 
 def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, steps: int, warmup: int, every: int,
@@ -139,21 +156,22 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
     """`layered train --seeds` with `seeds` seeds as one group, its update as `mode` (learner.compile), its
     environments stepped by `workers` processes (env.workers), of `recipe` (a file, with `settings`) or the
     benchmark's TD3 recipe (evaluated `every` steps); its steps/s (per seed, every seed stepping at once) from
-    the progress lines (as `settled_rate` reads them), times the seeds."""
+    the progress lines (as `settled_rate` reads them), times the seeds, and its peak GPU memory per seed."""
     with tempfile.TemporaryDirectory() as tmp:
-        if recipe is None:
-            recipe = str(Path(tmp) / "td3.toml")
-            Path(recipe).write_text(tomli_w.dumps(td3_recipe(env, hidden, steps, warmup, every)))
+        recipe = recipe or _td3_file(tmp, env, hidden, steps, warmup, every)
         start = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "layered.cli", "train", recipe, "--seeds", str(seeds),
-                               "--steps", str(steps), "--device", device, "--out", str(Path(tmp) / "runs"),
-                               f"learner.compile={mode}", f"env.workers={workers}", *settings],
-                              capture_output=True, text=True)
+        with DeviceMemory() as memory:
+            proc = subprocess.run([sys.executable, "-m", "layered.cli", "train", recipe, "--seeds", str(seeds),
+                                   "--steps", str(steps), "--device", device, "--out", str(Path(tmp) / "runs"),
+                                   f"learner.compile={mode}", f"env.workers={workers}", *settings],
+                                  capture_output=True, text=True)
         wall = time.perf_counter() - start
         if proc.returncode != 0:
             raise Failed(f"group of {seeds} failed: {_last_line(proc.stderr)}")
         rate = settled_rate(proc.stderr)
-    return {"seeds": seeds, "per_seed": rate, "aggregate": rate * seeds, "wall_seconds": wall}
+    total = memory.total()
+    return {"seeds": seeds, "per_seed": rate, "aggregate": rate * seeds, "wall_seconds": wall,
+            "mib_per_seed": None if total is None else total / seeds}
 
 
 def training_steps(device: str, env: str, hidden: str, steps: int, warmup: int, seeds: int = 1, workers: str = "0"
@@ -284,9 +302,9 @@ def main() -> None:
     parser.add_argument("--groups", default="1,4,16,64", help="seeds trained as one group, comma-separated")
     parser.add_argument("--env", default="Pendulum-v1", help="the benchmark recipe's environment (e.g. Hopper-v5)")
     parser.add_argument("--hidden", default="400,300", help="its hidden layer widths (e.g. 256,256)")
-    parser.add_argument("--group-recipe", help="a recipe file for the group part instead (e.g. a real-time TLA one)")
+    parser.add_argument("--recipe", help="a recipe file for the sweep and group parts instead (e.g. a TLA-C one)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="a setting of the group part's recipe file (repeatable, e.g. layers.slow.warmup=500)")
+                        help="a setting of the sweep and group parts' recipe (repeatable: layers.slow.warmup=500)")
     parser.add_argument("--group-modes", default="off,cudagraphs",
                         help="learner.compile values of the group part: eager, and the update as CUDA graphs")
     parser.add_argument("--group-workers", default="auto",
@@ -316,28 +334,31 @@ def main() -> None:
             print(f"| {mode} | {row['steps_per_second']:.1f} | {row['settle_seconds']:.1f} "
                   f"| {row['wall_seconds']:.1f} |", flush=True)
     if "sweep" in args.parts:
-        print("\n| seeds at once | CUDA MPS | aggregate steps/s | per seed steps/s | wall s |\n|---|---|---|---|---|")
+        print(f"\n{args.recipe or args.env}, a process per seed (layered sweep --jobs N)\n\n"
+              "| seeds at once | CUDA MPS | aggregate steps/s | per seed steps/s | GPU MiB per seed | wall s |\n"
+              "|---|---|---|---|---|---|")
         for jobs in map(int, args.jobs.split(",")):
             for mps in [m == "yes" for m in args.mps.split(",")] if jobs > 1 else (False,):
-                row = sweep(args.device, jobs, args.env, args.hidden, args.steps, args.warmup, every(args), mps)
+                row = sweep(args.device, jobs, args.recipe, args.env, args.hidden, args.steps, args.warmup,
+                            every(args), mps, args.set)
                 seeds = ", ".join(f"{r:.0f}" for r in row["per_seed"])
                 print(f"| {jobs} | {'yes' if mps else 'no'} | {row['aggregate']:.0f} | {seeds} | "
-                      f"{row['wall_seconds']:.1f} |", flush=True)
+                      f"{mib(row['mib_per_seed'])} | {row['wall_seconds']:.1f} |", flush=True)
     if "group" in args.parts:
-        print(f"\n{args.group_recipe or args.env}, seeds as one group (layered train --seeds K)\n\n"
-              "| K | learner.compile | env.workers | aggregate steps/s | per seed steps/s | wall s |\n"
-              "|---|---|---|---|---|---|")
+        print(f"\n{args.recipe or args.env}, seeds as one group (layered train --seeds K)\n\n"
+              "| K | learner.compile | env.workers | aggregate steps/s | per seed steps/s | GPU MiB per seed "
+              "| wall s |\n|---|---|---|---|---|---|---|")
         for k in map(int, args.groups.split(",")):
             for mode in args.group_modes.split(","):
                 for workers in args.group_workers.split(","):
                     try:
-                        row = group(args.device, k, args.group_recipe, args.env, args.hidden, args.steps,
+                        row = group(args.device, k, args.recipe, args.env, args.hidden, args.steps,
                                     args.warmup, every(args), mode, workers, args.set)
                     except Failed as e:
-                        print(f"| {k} | {mode} | {workers} | failed: {e} | | |", flush=True)
+                        print(f"| {k} | {mode} | {workers} | failed: {e} | | | |", flush=True)
                         continue
                     print(f"| {k} | {mode} | {workers} | {row['aggregate']:.0f} | {row['per_seed']:.0f} | "
-                          f"{row['wall_seconds']:.1f} |", flush=True)
+                          f"{mib(row['mib_per_seed'])} | {row['wall_seconds']:.1f} |", flush=True)
     if "targets" in args.parts:
         print_targets(args)
 
