@@ -9,10 +9,10 @@ torch.compile (mode reduce-overhead) replays its critic and actor steps as two g
 indices made on the host, acts eagerly and copies from pageable memory: on an H200 one HalfCheetah-v5
 seed's training steps ran at 284 steps/s that way, and at 941 as a group of one on the same machine. So
 these learners hand their networks to a group of one, and act, store and update through it (a single run's
-training steps then ran at 1,044 steps/s on an H200); their state
-dicts are the single learner's (`seed_state_dict`), so their checkpoints load into a plain learner
-anywhere (a CPU evaluating a GPU-trained run). With `compile` off or `inductor` each is its single
-learner as it is.
+training steps then ran at 1,044 steps/s on an H200); their state dicts are the single learner's
+(`seed_state_dict`), so their checkpoints load into a plain learner anywhere (a CPU evaluating a GPU-trained
+run), and their own replay buffers stay on the host, unwritten. With `compile` off or `inductor` each is its
+single learner as it is.
 """
 
 from __future__ import annotations
