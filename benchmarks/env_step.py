@@ -1,12 +1,14 @@
 """Where a MuJoCo row's step goes: K environments of one Gymnasium task stepped one after another through
 Gymnasium (as `layered.env_group` steps a group's rows), MuJoCo's own step of the same models alone (each
-row's `mj_step` for the task's frame skip, no Python around it but the loop), and `mujoco.rollout` stepping
+row's `mj_step` for the task's frame skip, no Python around it but the loop), Gymnasium's steps with the rows
+split over Python threads (`--py-threads`: MuJoCo's step lets go of Python's lock, so the physics runs in
+parallel and the rest takes turns; the same environments, so the same numbers), and `mujoco.rollout` stepping
 all K states at once in MuJoCo's threads (`--threads`), in this process. Every way starts each timing from the
 same K states and steps them with the same actions (episode ends are not acted on, so each way follows the
 same trajectories); medians of `--repeats` timings of `--steps` steps each, the ways alternating.
 
-    python benchmarks/env_step.py                          # 32 Hopper-v5 rows, rollout with 0, 1 and 2 threads
-    python benchmarks/env_step.py --env Walker2d-v5 --rows 64 --threads 0,4,8,15
+    python benchmarks/env_step.py                          # 32 Hopper-v5 rows; 2 Python threads; rollout 0, 1, 2
+    python benchmarks/env_step.py --env Walker2d-v5 --rows 64 --py-threads 4,8,15 --threads 0,4,8,15
 
 A lead for lighter environment stepping, not a path the project takes yet: the rollout's states are not
 Gymnasium's environments (no observations, rewards or episode ends are made from them here, and a rollout
@@ -19,6 +21,7 @@ import argparse
 import statistics
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import gymnasium as gym
 import mujoco
@@ -54,6 +57,16 @@ class Rows:
             for env, action in zip(self.envs, step, strict=True):
                 env.step(action)
 
+    def threaded(self, threads: int) -> Callable[[], None]:
+        parts = [list(range(t, len(self.envs), threads)) for t in range(threads)]
+
+        def run() -> None:
+            self.restart()
+            with ThreadPoolExecutor(threads) as pool:
+                for step in self.actions:
+                    list(pool.map(lambda part, step=step: [self.envs[k].step(step[k]) for k in part], parts))
+        return run
+
     def mujoco(self) -> None:
         self.restart()
         for step in self.actions:
@@ -80,11 +93,14 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=32)
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--py-threads", default="2", help="Python thread counts stepping Gymnasium's rows")
     parser.add_argument("--threads", default="0,1,2", help="rollout thread counts (0: on the calling thread)")
     args = parser.parse_args()
     rows = Rows(args.env, args.rows, args.steps)
     ways: dict[str, Callable[[], None]] = {"Gymnasium, one row after another": rows.gymnasium,
                                            "MuJoCo's step alone, one row after another": rows.mujoco}
+    for threads in map(int, args.py_threads.split(",")):
+        ways[f"Gymnasium, the rows split over {threads} Python threads"] = rows.threaded(threads)
     for threads in map(int, args.threads.split(",")):
         name = f"mujoco.rollout, {threads} threads" if threads else "mujoco.rollout, on the calling thread"
         ways[name] = rows.rollout(threads)
