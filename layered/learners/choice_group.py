@@ -36,8 +36,7 @@ class ChoiceGroup:
         self.opt = StackedAdam(list(self.net.parameters()), td3.config.lr, td3.k, first.opt.state_dict())
         # obs, action, choice, reward, next obs, not done, discount
         widths = (td3.obs_dim, td3.act_dim, 1, 1, td3.obs_dim, 1, 1)
-        self.replay = StackedReplay(td3.k, td3.config.buffer_size, widths, td3.device,
-                                    captured=td3.config.compile != "off")
+        self.replay = StackedReplay(td3.k, td3.config.buffer_size, widths, td3.device, td3.captured)
         for k, choice in enumerate(singles):  # (a choice started from weights brings its moments, as TD3's do)
             self.opt.load_seed_state(k, choice.opt.state_dict())
 

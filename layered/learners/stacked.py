@@ -192,11 +192,10 @@ class StackedReplay:
     def add(self, data: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Store row `data[k]` ([K, row]) for every seed, or only for the seeds of the `rows` mask. Nothing is
         read back, so that on a GPU the host goes on at once: the mask travels with the rows."""
-        every = rows is None or bool(rows.all())
-        if not every:
-            assert rows is not None
-            data = np.concatenate([data, rows[:, None]], axis=1, dtype=np.float32)
-        staged = self._staging.put(data)
+        if rows is None or rows.all():
+            every, staged = True, self._staging.put(data)
+        else:
+            every, staged = False, self._staging.put(np.concatenate([data, rows[:, None]], axis=1, dtype=np.float32))
         if self._stores is None:
             self._store(staged, every)
         else:  # (on a GPU the staged tensor is the same at every call of its shape: the graph reads it there)

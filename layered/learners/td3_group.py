@@ -101,8 +101,8 @@ class TD3Group:
         self._low, self._high = first._low, first._high
         self.obs_dim, self.act_dim = first.obs_space.shape[0], first.action_space.shape[0]
         widths = (self.obs_dim, self.act_dim, 1, self.obs_dim, 1, 1)  # obs, action, reward, next, not done, discount
-        self.replay = StackedReplay(self.k, self.config.buffer_size, widths, self.device,
-                                    captured=self.config.compile != "off")
+        self.captured = self.config.compile != "off"  # (its update, acting and stores as CUDA graphs on a GPU)
+        self.replay = StackedReplay(self.k, self.config.buffer_size, widths, self.device, self.captured)
         self.torch_rng = torch.Generator(self.device).manual_seed(seed)
         self.staging = Staging(self.device)  # observations and masks on their way to the device
         self.rng = np.random.default_rng(seed)
@@ -111,11 +111,11 @@ class TD3Group:
         # act and follow, which each update writes here; one graph per `Variant` met (`captured_step`)
         self._masks = torch.zeros((3, self.k), device=self.device)
         self._graphed: dict[Variant, GraphedStep[tuple[torch.Tensor, torch.Tensor | None]]] | None = (
-            None if self.config.compile == "off" else {})
+            {} if self.captured else None)
         # and acting, as one more graph per number of observations a seed acts on at once (one in training, an
         # evaluation's lanes): the actor's kernels at one launch, on observations copied in (`actor_outputs`)
         self._acting: dict[int, tuple[torch.Tensor, GraphedStep[torch.Tensor]]] | None = (
-            None if self.config.compile == "off" else {})
+            {} if self.captured else None)
         for k, learner in enumerate(learners):  # learners started from weights bring their moments and counts too,
             self.actor_opt.load_seed_state(k, learner.actor_opt.state_dict())  # as a single run keeps them
             self.critic_opt.load_seed_state(k, learner.critic_opt.state_dict())
