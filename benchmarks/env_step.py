@@ -5,10 +5,13 @@ split over Python threads (`--py-threads`: MuJoCo's step lets go of Python's loc
 parallel and the rest takes turns; the same environments, so the same numbers), and `mujoco.rollout` stepping
 all K states at once in MuJoCo's threads (`--threads`), in this process. Every way starts each timing from the
 same K states and steps them with the same actions (episode ends are not acted on, so each way follows the
-same trajectories); medians of `--repeats` timings of `--steps` steps each, the ways alternating.
+same trajectories); medians of `--repeats` timings of `--steps` steps each, the ways alternating. With
+`--layered`, a group's own environments (`layered.env_workers.open_envs`) too, for each pair of `env.workers`
+and `env.threads` given: the rows reset from the same seeds before each timing, stepped with the same actions.
 
     python benchmarks/env_step.py                          # 32 Hopper-v5 rows; 2 Python threads; rollout 0, 1, 2
     python benchmarks/env_step.py --env Walker2d-v5 --rows 64 --py-threads 4,8,15 --threads 0,4,8,15
+    python benchmarks/env_step.py --layered 0:0,0:2,1:0,1:2    # env.workers:env.threads
 
 A lead for lighter environment stepping, not a path the project takes yet: the rollout's states are not
 Gymnasium's environments (no observations, rewards or episode ends are made from them here, and a rollout
@@ -27,6 +30,9 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 from mujoco import rollout
+
+from layered.env_group import Envs
+from layered.env_workers import open_envs
 
 
 class Rows:
@@ -86,6 +92,15 @@ class Rows:
                     state = out[:, -1]
         return run
 
+    def layered(self, envs: Envs) -> Callable[[], None]:
+        every = np.ones(len(self.envs), bool)
+
+        def run() -> None:
+            envs.reset(every, list(range(len(self.envs))))
+            for step in self.actions:
+                envs.step(step, every)
+        return run
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -95,8 +110,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--py-threads", default="2", help="Python thread counts stepping Gymnasium's rows")
     parser.add_argument("--threads", default="0,1,2", help="rollout thread counts (0: on the calling thread)")
+    parser.add_argument("--layered", default="", help="env.workers:env.threads pairs of a group's own environments")
     args = parser.parse_args()
     rows = Rows(args.env, args.rows, args.steps)
+    rows.actions = rows.actions.astype(np.float32)
     ways: dict[str, Callable[[], None]] = {"Gymnasium, one row after another": rows.gymnasium,
                                            "MuJoCo's step alone, one row after another": rows.mujoco}
     for threads in map(int, args.py_threads.split(",")):
@@ -104,6 +121,11 @@ def main() -> None:
     for threads in map(int, args.threads.split(",")):
         name = f"mujoco.rollout, {threads} threads" if threads else "mujoco.rollout, on the calling thread"
         ways[name] = rows.rollout(threads)
+    opened = []
+    for pair in filter(None, args.layered.split(",")):
+        workers, threads = map(int, pair.split(":"))
+        opened.append(open_envs(args.env, args.rows, workers, threads))
+        ways[f"a group's environments, env.workers {workers}, env.threads {threads}"] = rows.layered(opened[-1])
     times: dict[str, list[float]] = {name: [] for name in ways}
     for _ in range(args.repeats):
         for name, way in ways.items():
@@ -115,7 +137,7 @@ def main() -> None:
     for name, seconds in times.items():
         median = statistics.median(seconds)
         print(f"| {name} | {median * 1e3:.3f} | {median * 1e6 / args.rows:.1f} |")
-    for env in rows.envs:
+    for env in [*rows.envs, *opened]:
         env.close()
 
 

@@ -10,6 +10,7 @@ takes a group of one's rate so).
 
     python benchmarks/gpu_profile.py                                   # one HalfCheetah-v5 seed, 256-256
     python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto
+    python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers 0 --env-threads 8
     python benchmarks/gpu_profile.py --device cpu --steps 1600 --window 50   # checks the script on a CPU
 """
 
@@ -59,7 +60,7 @@ def profiled(args: argparse.Namespace, tmp: Path) -> tuple[list[float], torch.pr
         progress.Progress.advance = stepped  # type: ignore[method-assign,assignment]
         try:
             layered(["train", str(recipe), "--seeds", str(args.seeds), "--device", args.device,
-                     "--out", str(tmp / "runs"), f"env.workers={args.workers}"])
+                     "--out", str(tmp / "runs"), f"env.workers={args.workers}", f"env.threads={args.env_threads}"])
         finally:
             progress.Progress.advance = advance  # type: ignore[method-assign]
     first = args.warmup + (wait - args.warmup) // 4  # (the first updates capture their graphs)
@@ -73,6 +74,7 @@ def main() -> None:
     parser.add_argument("--hidden", default="256,256")
     parser.add_argument("--seeds", type=int, default=1)
     parser.add_argument("--workers", default="0", help="env.workers (0: in this process; auto)")
+    parser.add_argument("--env-threads", default="auto", help="env.threads (threads stepping the rows per process)")
     parser.add_argument("--steps", type=int, default=2400)
     parser.add_argument("--warmup", type=int, default=1000)
     parser.add_argument("--window", type=int, default=200, help="steps the profiler records, at the end (0: none)")

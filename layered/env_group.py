@@ -12,7 +12,9 @@ collected, after the queued work is launched.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Protocol
 
 import gymnasium as gym
@@ -77,6 +79,54 @@ def reset_rows(envs: Sequence[gym.Env], rows: np.ndarray, seeds: Sequence[int | 
             envs[k].action_space.seed(seeds[k])
 
 
+class RowThreads:
+    """A process's rows stepped by `threads` Python threads, each a contiguous slice of them, started at once
+    and collected later. MuJoCo's step lets go of Python's lock, so the rows' physics runs in parallel (and
+    beside the caller's work, such as an update) while their Python takes turns; each row is stepped by one
+    thread, so the numbers are those of the rows stepped one after another. 0 threads: the rows step in the
+    calling thread, when the step is collected."""
+
+    def __init__(self, envs: Sequence[gym.Env], threads: int) -> None:
+        self.envs = envs
+        bounds = np.linspace(0, len(envs), min(threads, len(envs)) + 1).round().astype(int).tolist()
+        self._slices = [slice(a, b) for a, b in itertools.pairwise(bounds)] if threads else []
+        self._pool = ThreadPoolExecutor(len(self._slices), "layered-rows") if self._slices else None
+        self._asked: tuple[np.ndarray, np.ndarray, np.ndarray, StepResult] | None = None
+        self._running: list[Future[None]] = []
+
+    def start(self, actions: np.ndarray, rows: np.ndarray, obs: np.ndarray, result: StepResult) -> None:
+        """Begin stepping the rows of the `rows` mask as `step_rows` does (with copies of `actions` and `rows`,
+        which the caller may change meanwhile), into `obs` and `result`."""
+        assert self._asked is None and not self._running, "a step is under way: wait for it first"
+        asked = (actions.copy(), rows.copy(), obs, result)
+        if self._pool is None:
+            self._asked = asked
+            return
+        self._running = [self._pool.submit(_step_slice, self.envs, part, *asked) for part in self._slices
+                         if asked[1][part].any()]
+
+    def wait(self) -> None:
+        """Wait until the started step is done; the first error a thread met is raised once all are done."""
+        if self._asked is not None:
+            (actions, rows, obs, result), self._asked = self._asked, None
+            step_rows(self.envs, actions, rows, obs, result)
+        running, self._running = self._running, []
+        errors = [error for future in running if (error := future.exception()) is not None]
+        if errors:
+            raise errors[0]
+
+    def close(self) -> None:
+        """Stop the threads (after any step under way)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+
+
+def _step_slice(envs: Sequence[gym.Env], part: slice, actions: np.ndarray, rows: np.ndarray, obs: np.ndarray,
+                result: StepResult) -> None:
+    """`step_rows` on the rows of `part` alone."""
+    step_rows(envs[part], actions[part], rows[part], obs[part], tuple(array[part] for array in result))  # type: ignore[arg-type]
+
+
 def spaces(env: gym.Env) -> tuple[Box, Box]:
     """An environment's observation and action spaces, both boxes (the recipe checks refuse other spaces)."""
     space, action_space = env.observation_space, env.action_space
@@ -85,26 +135,27 @@ def spaces(env: gym.Env) -> tuple[Box, Box]:
 
 
 class EnvGroup(Envs):
-    """K environments stepped one after the other in this process (`Envs`)."""
+    """K environments stepped in this process by `threads` threads (`RowThreads`; `Envs`)."""
 
-    def __init__(self, env_id: str, rows: int) -> None:
+    def __init__(self, env_id: str, rows: int, threads: int = 0) -> None:
         self.env_id = env_id
         self.envs = [make_env(env_id) for _ in range(rows)]
         self.observation_space, self.action_space = spaces(self.envs[0])
         self.obs = np.zeros((rows, *(self.observation_space.shape or ())), np.float32)
-        self._asked: tuple[np.ndarray, np.ndarray] | None = None
+        self._threads = RowThreads(self.envs, threads)
+        self._result: StepResult | None = None
 
     def reset(self, rows: np.ndarray, seeds: Sequence[int | None]) -> None:
         reset_rows(self.envs, rows, seeds, self.obs)
 
     def step_async(self, actions: np.ndarray, rows: np.ndarray) -> None:
-        self._asked = (actions, rows)
+        self._result = (np.zeros(len(self.envs)), np.zeros(len(self.envs), bool), np.zeros(len(self.envs), bool))
+        self._threads.start(actions, rows, self.obs, self._result)
 
     def step_wait(self) -> StepResult:
-        assert self._asked is not None, "step_wait collects the step step_async asked for"
-        (actions, rows), self._asked = self._asked, None
-        result = (np.zeros(len(self.envs)), np.zeros(len(self.envs), bool), np.zeros(len(self.envs), bool))
-        step_rows(self.envs, actions, rows, self.obs, result)
+        assert self._result is not None, "step_wait collects the step step_async asked for"
+        result, self._result = self._result, None
+        self._threads.wait()
         return result
 
     def snapshots(self) -> list[dict[str, Any]]:
@@ -116,5 +167,6 @@ class EnvGroup(Envs):
         self.obs[:] = obs
 
     def close(self) -> None:
+        self._threads.close()
         for env in self.envs:
             env.close()

@@ -25,7 +25,7 @@ from typing import Any, Literal
 import numpy as np
 
 from layered.cores import usable_cores
-from layered.env_group import EnvGroup, Envs, StepResult, reset_rows, spaces, step_rows
+from layered.env_group import EnvGroup, Envs, RowThreads, StepResult, reset_rows, spaces
 from layered.envs import make_env, restore_env, snapshot_env
 
 WorkersSetting = int | Literal["auto"]
@@ -45,10 +45,22 @@ def worker_count(setting: WorkersSetting, rows: int, cores: int | None = None) -
     return 0 if cores < 4 or rows < 2 else min(rows, cores // 2)
 
 
-def open_envs(env_id: str, rows: int, workers: WorkersSetting) -> Envs:
-    """`rows` environments of `env_id`, in `worker_count(workers, rows)` worker processes (none: in this one)."""
+def thread_count(setting: WorkersSetting, rows: int, workers: int) -> int:
+    """How many threads step the rows in each process that steps them (`rows` rows in `workers` worker
+    processes, or in this one where `workers` is 0): `setting` itself, or for `auto` one in the training
+    process, so that its rows step beside the update it queues, and none in a worker (which steps beside
+    it already) or for a single row (a thread's hand-over would cost a step more than it hides)."""
+    if setting != "auto":
+        return setting
+    return 1 if workers == 0 and rows >= 2 else 0
+
+
+def open_envs(env_id: str, rows: int, workers: WorkersSetting, threads: WorkersSetting = 0) -> Envs:
+    """`rows` environments of `env_id`, in `worker_count(workers, rows)` worker processes (none: in this one),
+    each stepping its rows in `thread_count(threads, ...)` threads."""
     count = worker_count(workers, rows)
-    return EnvWorkers(env_id, rows, count) if count else EnvGroup(env_id, rows)
+    each = thread_count(threads, rows, count)
+    return EnvWorkers(env_id, rows, count, each) if count else EnvGroup(env_id, rows, each)
 
 
 def _context() -> Any:
@@ -95,7 +107,7 @@ class _Shared:
 class EnvWorkers(Envs):
     """K environments stepped in `workers` processes, rows split into contiguous slices (`Envs`)."""
 
-    def __init__(self, env_id: str, rows: int, workers: int) -> None:
+    def __init__(self, env_id: str, rows: int, workers: int, threads: int = 0) -> None:
         self.env_id = env_id
         probe = make_env(env_id)  # the spaces, read here as `EnvGroup` reads them
         self.observation_space, self.action_space = spaces(probe)
@@ -111,8 +123,8 @@ class EnvWorkers(Envs):
         try:
             for part in self._slices:
                 mine, theirs = context.Pipe()
-                process = context.Process(target=_serve, args=(theirs, env_id, part, self._shared), daemon=True,
-                                          name=f"layered-envs-{part.start}-{part.stop - 1}")
+                process = context.Process(target=_serve, args=(theirs, env_id, part, threads, self._shared),
+                                          daemon=True, name=f"layered-envs-{part.start}-{part.stop - 1}")
                 process.start()
                 theirs.close()
                 self._pipes.append(mine)
@@ -200,19 +212,23 @@ class EnvWorkers(Envs):
         return f"the worker process stepping {rows} ended unexpectedly"
 
 
-def _serve(pipe: Connection, env_id: str, part: slice, shared: _Shared) -> None:
-    """A worker: make the environments of rows `part` and carry out the group's commands on them."""
+def _serve(pipe: Connection, env_id: str, part: slice, threads: int, shared: _Shared) -> None:
+    """A worker: make the environments of rows `part` and carry out the group's commands on them, its steps
+    in `threads` threads."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     envs: list[Any] = []
+    stepping: RowThreads | None = None
     try:
         envs = [make_env(env_id) for _ in range(part.start, part.stop)]
+        stepping = RowThreads(envs, threads)
         pipe.send_bytes(pickle.dumps((True, None)))
         while True:
             command, argument = pickle.loads(pipe.recv_bytes())
             if command == "close":
                 return
             try:
-                pipe.send_bytes(pickle.dumps((True, _carry_out(command, argument, envs, env_id, part, shared))))
+                pipe.send_bytes(pickle.dumps((True, _carry_out(command, argument, envs, stepping, env_id, part,
+                                                                shared))))
             except Exception:  # the group raises it, with this traceback
                 pipe.send_bytes(pickle.dumps((False, traceback.format_exc())))
     except (EOFError, OSError):
@@ -220,15 +236,19 @@ def _serve(pipe: Connection, env_id: str, part: slice, shared: _Shared) -> None:
     except Exception:  # making the environments failed
         pipe.send_bytes(pickle.dumps((False, traceback.format_exc())))
     finally:
+        if stepping is not None:
+            stepping.close()
         for env in envs:
             env.close()
 
 
-def _carry_out(command: str, argument: Any, envs: list[Any], env_id: str, part: slice, shared: _Shared) -> Any:
+def _carry_out(command: str, argument: Any, envs: list[Any], stepping: RowThreads, env_id: str, part: slice,
+               shared: _Shared) -> Any:
     """One command on the worker's rows; what it answers."""
     if command == "step":
-        step_rows(envs, shared.actions[part], shared.rows[part], shared.obs[part],
-                  tuple(array[part] for array in shared.result))  # type: ignore[arg-type]
+        stepping.start(shared.actions[part], shared.rows[part], shared.obs[part],
+                       tuple(array[part] for array in shared.result))  # type: ignore[arg-type]
+        stepping.wait()
         return None
     if command == "reset":
         reset_rows(envs, shared.rows[part], argument, shared.obs[part])

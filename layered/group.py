@@ -259,7 +259,7 @@ class Group:
         """The phase's stack (for its layers' spaces and discounts), its rules over `lanes` rows per seed (seed k's
         lane l is row k * lanes + l: an evaluation plays several episodes of a seed side by side), and their envs."""
         rows = self.rows * lanes
-        envs = open_envs(self.recipe.env.id, rows, self.recipe.env.workers)
+        envs = open_envs(self.recipe.env.id, rows, self.recipe.env.workers, self.recipe.env.threads)
         stack = Stack(self.recipe, envs.observation_space, envs.action_space, active=list(phase.active),
                       evaluation=evaluation)
         rules = Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, rows)

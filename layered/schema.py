@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from layered.combiners import COMBINERS
 from layered.envs import env_info
@@ -39,12 +39,18 @@ class EnvConfig(Section):
     """Processes that step a group's environments (`layered train --seeds`), several each: 0 steps them
     in the training process; `auto` takes half the cores on machines with 4 or more, else 0. Where they
     step changes no number."""
+    threads: Whole | Literal["auto"] = "auto"
+    """Threads that step a group's environments in each process that steps them (the training process, or
+    each worker), a slice of the rows each; MuJoCo's step runs in parallel in them. 0 steps the rows in the
+    process's own thread; `auto` takes one in the training process (the rows step beside the update) and
+    none in workers. Where they step changes no number."""
 
-    @field_validator("workers", mode="before")
+    @field_validator("workers", "threads", mode="before")
     @classmethod
-    def _count_or_auto(cls, value: Any) -> Any:
+    def _count_or_auto(cls, value: Any, info: ValidationInfo) -> Any:
         if value != "auto" and not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
-            raise ValueError(f"give a number of processes, 0 or more, or 'auto' (got {value!r})")
+            raise ValueError(f"give a number of {'processes' if info.field_name == 'workers' else 'threads'}, "
+                             f"0 or more, or 'auto' (got {value!r})")
         return value
 
     @field_validator("return_range")

@@ -43,6 +43,8 @@ CASES = {
     "negative seed": (["train", str(TLA_C), "--seed", "-1"], "train.seed"),
     "unknown key": (["train", str(TLA_C), "train.warmpu=5"], "train.warmpu: unknown key"),
     "empty hidden layer": (["train", str(TLA_C), "learner.hidden=[0, 8]"], "learner.hidden[0]"),
+    "negative env threads": (["train", str(TLA_C), "env.threads=-1"], "give a number of threads, 0 or more"),
+    "env workers as a word": (["train", str(TLA_C), 'env.workers="many"'], "give a number of processes, 0 or more"),
     "reversed return range": (["train", str(TLA_C), "env.return_range=[0, -10]"], "worst return must be below"),
     "out is a file": (["train", str(TLA_C), "--out", "{tmp}/a-file"], "is a file, not a directory"),
     "unknown option": (["train", str(TLA_C), "--stpes", "5"], "unrecognized arguments: --stpes"),

@@ -1,5 +1,6 @@
-"""A group's environments stepped in worker processes are the environments stepped here: the same
-observations, rewards and flags row by row, the same snapshots; a worker's failure is the group's error."""
+"""A group's environments stepped in worker processes, or in threads, are the environments stepped here
+one after another: the same observations, rewards and flags row by row, the same snapshots; a worker's or
+a thread's failure is the group's error."""
 
 import os
 import signal
@@ -9,7 +10,7 @@ import pytest
 
 from layered import cores
 from layered.env_group import EnvGroup
-from layered.env_workers import EnvWorkerError, EnvWorkers, open_envs, worker_count
+from layered.env_workers import EnvWorkerError, EnvWorkers, open_envs, thread_count, worker_count
 
 ENV = "Hopper-v5"  # episodes of different lengths, and a MuJoCo state in every snapshot
 
@@ -25,6 +26,18 @@ ENV = "Hopper-v5"  # episodes of different lengths, and a MuJoCo state in every 
 ])
 def test_how_many_workers_step_the_rows(setting, rows, cores, expected):
     assert worker_count(setting, rows, cores) == expected
+
+
+@pytest.mark.parametrize("setting, rows, workers, expected", [
+    ("auto", 8, 0, 1),  # in the training process: one thread, stepping beside the update
+    ("auto", 1, 0, 0),  # a single row steps in the process's own thread
+    ("auto", 32, 8, 0),  # a worker steps beside the update already
+    (3, 8, 0, 3),  # a number is taken as given
+    (2, 32, 8, 2),
+    (0, 8, 0, 0),
+])
+def test_how_many_threads_step_a_process_rows(setting, rows, workers, expected):
+    assert thread_count(setting, rows, workers) == expected
 
 
 def test_a_process_given_a_share_of_the_cores_counts_those_alone(monkeypatch):
@@ -97,12 +110,54 @@ def test_rows_stepped_in_workers_give_what_they_give_here_and_their_snapshots_co
         here.close()
 
 
-def test_a_step_can_be_collected_after_other_work():
-    envs = EnvWorkers("Pendulum-v1", 4, 2)
+@pytest.mark.parametrize("threads", [1, 2, 3, 8])  # 8: more threads than rows
+def test_rows_stepped_in_threads_give_what_they_give_one_after_another(threads):
+    alone, threaded = EnvGroup(ENV, 5), EnvGroup(ENV, 5, threads)
+    try:
+        expected, saved = play(alone, 120, seed=1, snapshot_at=60)
+        got, saved_threaded = play(threaded, 120, seed=1, snapshot_at=60)
+        assert_same_trace(expected, got)
+        assert np.array_equal(saved[1], saved_threaded[1])
+    finally:
+        alone.close()
+        threaded.close()
+
+
+def test_rows_stepped_in_threads_of_workers_give_what_they_give_here():
+    here, there = EnvGroup(ENV, 5), EnvWorkers(ENV, 5, 2, threads=2)
+    try:
+        assert_same_trace(play(here, 80, seed=3)[0], play(there, 80, seed=3)[0])
+    finally:
+        here.close()
+        there.close()
+
+
+def test_a_failure_in_a_thread_is_raised_when_the_step_is_collected_and_the_rows_step_again_after():
+    envs = EnvGroup("Pendulum-v1", 4, threads=2)
+    try:
+        envs.reset(np.ones(4, bool), [0, 1, 2, 3])
+        broken, step = envs.envs[3], envs.envs[3].step
+        broken.step = lambda action: (_ for _ in ()).throw(ValueError("row 3 broke"))
+        envs.step_async(np.zeros((4, 1), np.float32), np.ones(4, bool))  # raises nothing yet
+        with pytest.raises(ValueError, match="row 3 broke"):
+            envs.step_wait()
+        broken.step = step
+        reward, _, _ = envs.step(np.zeros((4, 1), np.float32), np.ones(4, bool))
+        assert (reward < 0).all()
+    finally:
+        envs.close()
+
+
+@pytest.mark.parametrize("make", [lambda: EnvWorkers("Pendulum-v1", 4, 2), lambda: EnvGroup("Pendulum-v1", 4, 2)],
+                         ids=["workers", "threads"])
+def test_a_step_can_be_collected_after_other_work(make):
+    envs = make()
     try:
         envs.reset(np.ones(4, bool), [0, 1, 2, 3])
         before = envs.obs.copy()
-        envs.step_async(np.zeros((4, 1), np.float32), np.array([True, False, True, False]))
+        actions, mask = np.zeros((4, 1), np.float32), np.array([True, False, True, False])
+        envs.step_async(actions, mask)
+        actions[:], mask[:] = 2.0, True  # the caller's arrays are its own again once the step is asked for
         reward, _, _ = envs.step_wait()
         assert np.array_equal(envs.obs[[1, 3]], before[[1, 3]]) and not np.array_equal(envs.obs[0], before[0])
         assert reward[0] < 0 and reward[1] == 0
