@@ -30,6 +30,7 @@ import torch
 
 from layered.best_journal import BestJournal, best_folder
 from layered.checkpoint import save_checkpoint
+from layered.checkpoint_writer import CheckpointWriter, writes_beside
 from layered.env_group import Envs
 from layered.env_workers import open_envs
 from layered.envs import make_env, snapshot_env
@@ -43,6 +44,7 @@ from layered.group_state import (
     check_new_group,
     clear_group,
     group_info,
+    group_snapshot,
     load_group,
     save_group,
     seed_dirs,
@@ -185,12 +187,13 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
                 seed.episodes.truncate(seed.state.log_sizes["episodes"])
             seeds.append(seed)
         stop = StopRequest(until="this step")
+        writer = CheckpointWriter(beside=writes_beside(next(iter(singles[0].values())).device))
         group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop,
                       ReplayJournal(replay_folder(directory / GROUP_CHECKPOINT)),
-                      BestJournal(best_folder(directory / GROUP_CHECKPOINT)))
+                      BestJournal(best_folder(directory / GROUP_CHECKPOINT)), writer)
         del singles
         try:
-            with stop.installed():
+            with stop.installed(), writer:  # (the last checkpoint written before results, or a stop, are reported)
                 group.train(saved)
         finally:
             for seed in seeds:
@@ -225,10 +228,11 @@ class Group:
     """K seeds of a recipe training together, phase by phase, checkpointing every `checkpoint_every` steps."""
 
     def __init__(self, seeds: list[Seed], learners: dict[str, GroupLearner], max_steps: int | None, progress: bool,
-                 directory: Path, digests: list[str], stop: StopRequest, journal: ReplayJournal, best: BestJournal
-                 ) -> None:
+                 directory: Path, digests: list[str], stop: StopRequest, journal: ReplayJournal, best: BestJournal,
+                 writer: CheckpointWriter) -> None:
         self.seeds, self.learners, self.max_steps, self.progress = seeds, learners, max_steps, progress
         self.directory, self.digests, self.stop, self.journal, self.best = directory, digests, stop, journal, best
+        self.writer = writer
         self.recipe = seeds[0].recipe
         self.rows = len(seeds)
         self.names = self.recipe.layer_names()
@@ -377,7 +381,9 @@ class Group:
     def _checkpoint(self, loop: PhaseLoop, decisions: dict[str, np.ndarray], losses: dict[str, PendingLosses],
                     rules: Rules, envs: Envs) -> None:
         """Save where the group stands, at any step: each seed's loop state (its losses read back first and
-        its logs' sizes), the phase's open transitions, the rules' rows, the environments and the learners."""
+        its logs' sizes), the phase's open transitions, the rules' rows, the environments and the learners,
+        copied here and written while the group goes on (`layered.checkpoint_writer`)."""
+        self.writer.wait()  # the checkpoint before is on disk, what it replaced removed: this one records from there
         _read_back(losses, self.seeds, loop.step)
         interval = checkpoint_interval(self.recipe)
         for k, seed in enumerate(self.seeds):
@@ -390,12 +396,17 @@ class Group:
         numbers, states = [seed.recipe.train.seed for seed in self.seeds], [seed.state for seed in self.seeds]
         replays = self.journal.record(replays_of(self.learners))  # (the rows stored since the last checkpoint)
         best = self.best.record(numbers, states)  # (the best weights of seeds whose best changed since)
-        save_group(self.directory, numbers, self.digests, self.max_steps,
-                   GroupCheckpoint(states, loop, rules.state_dict(), envs.snapshots(), envs.obs,
-                                   {name: g.resume_state() for name, g in self.learners.items()},
-                                   torch.get_rng_state(), replays, best))
-        self.journal.prune()
-        self.best.prune()
+        snapshot = group_snapshot(numbers, self.digests, self.max_steps,
+                                  GroupCheckpoint(states, loop, rules.state_dict(), envs.snapshots(), envs.obs,
+                                                  {name: g.resume_state() for name, g in self.learners.items()},
+                                                  torch.get_rng_state(), replays, best), self.writer.beside)
+
+        def write() -> None:
+            save_group(self.directory, snapshot)
+            self.journal.prune()
+            self.best.prune()
+
+        self.writer.start(write)
 
     def _log_episodes(self, ended: np.ndarray, phase: int, loop: PhaseLoop) -> None:
         """Log the episodes that ended in the `ended` rows, and start their counts again."""

@@ -22,6 +22,7 @@ import torch
 
 from layered.best_journal import BestFiles, BestJournal, best_folder, check_best
 from layered.checkpoint import CheckpointError, load_latest, previous, save_checkpoint
+from layered.checkpoint_writer import host_copy
 from layered.replay_journal import Manifest, ReplayJournal, check_segments, replay_folder
 from layered.rundir import RunDirError, RunInfo, check_new_run_dir, read_run_info, steps_option
 from layered.runstate import LoopState
@@ -122,18 +123,24 @@ def seed_dirs(directory: Path, seeds: Sequence[int]) -> list[Path]:
     return [directory / f"seed{seed}" for seed in seeds]
 
 
-def save_group(directory: Path, seeds: list[int], digests: list[str], max_steps: int | None,
-               checkpoint: GroupCheckpoint) -> None:
-    """Write the group's checkpoint; the one it replaces is kept as its previous."""
+def group_snapshot(seeds: list[int], digests: list[str], max_steps: int | None, checkpoint: GroupCheckpoint,
+                   beside: bool = True) -> dict[str, Any]:
+    """The group's checkpoint as its file holds it; for a write `beside` training, its tensors copied to the host
+    (`host_copy`), so that the group can go on while it is written."""
     loop = checkpoint.loop
-    save_checkpoint(directory / GROUP_CHECKPOINT, "group", {
+    return host_copy({
         "seeds": list(seeds), "recipe_digests": list(digests), "max_steps": max_steps,
         "states": [state.to_json() for state in checkpoint.states], "best": checkpoint.best,
-        "loop": {"step": loop.step, "pending": {str(i): _tensors(asdict(p)) for i, p in loop.pending.items()},
-                 "returns": _tensors(loop.returns), "lengths": _tensors(loop.lengths)},
-        "rules": _tensors(checkpoint.rules), "envs": checkpoint.envs, "obs": _tensors(checkpoint.obs),
+        "loop": {"step": loop.step, "pending": {str(i): asdict(p) for i, p in loop.pending.items()},
+                 "returns": loop.returns, "lengths": loop.lengths},
+        "rules": checkpoint.rules, "envs": checkpoint.envs, "obs": checkpoint.obs,
         "learners": checkpoint.learners, "torch_rng": checkpoint.torch_rng, "replays": checkpoint.replays,
-    }, keep_previous=True)
+    }, tensors=beside)
+
+
+def save_group(directory: Path, snapshot: dict[str, Any]) -> None:
+    """Write the group's checkpoint (`group_snapshot`); the one it replaces is kept as its previous."""
+    save_checkpoint(directory / GROUP_CHECKPOINT, "group", snapshot, keep_previous=True)
 
 
 def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps: int | None
@@ -170,19 +177,8 @@ def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
                            saved["torch_rng"], saved["replays"], saved["best"])
 
 
-def _tensors(tree: Any) -> Any:
-    """`tree` with its numpy arrays as tensors, which a checkpoint loaded weights-only can hold."""
-    if isinstance(tree, np.ndarray):
-        return torch.from_numpy(np.ascontiguousarray(tree).copy())
-    if isinstance(tree, dict):
-        return {key: _tensors(value) for key, value in tree.items()}
-    if isinstance(tree, list | tuple):
-        return type(tree)(_tensors(value) for value in tree)
-    return tree
-
-
 def _arrays(tree: Any) -> Any:
-    """`tree` with its tensors as numpy arrays again (what `_tensors` was given)."""
+    """`tree` with its tensors as numpy arrays again (what `host_copy` was given)."""
     if isinstance(tree, torch.Tensor):
         return tree.numpy()
     if isinstance(tree, dict):

@@ -16,6 +16,7 @@ from layered.interrupt import StopRequest
 from layered.learner_set import build_learners, load_learners
 from layered.logs import CsvLog
 from layered.best_journal import BestJournal
+from layered.checkpoint_writer import CheckpointWriter
 from layered.replay_journal import ReplayJournal
 from layered.results import EPISODE_FIELDS, metrics_fields
 from layered.rundir import RunDirError
@@ -36,7 +37,7 @@ def tiny_group(recipe, seeds, tmp_path, overrides=()):
         seed.metrics.start()
         seed.episodes.start()
     group = Group(seeds_, _stack_learners(recipes, singles), None, False, tmp_path, [""] * len(recipes), StopRequest(),
-                  ReplayJournal(tmp_path / "replay"), BestJournal(tmp_path / "best"))
+                  ReplayJournal(tmp_path / "replay"), BestJournal(tmp_path / "best"), CheckpointWriter())
     return group, recipes, singles
 
 
