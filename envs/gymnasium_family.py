@@ -37,3 +37,7 @@ class GymnasiumFamily(EnvFamily):
             hint = f"; did you mean {', '.join(close)}?" if close else ""
             raise KeyError(f"no Gymnasium environment {name!r}{hint}")
         return EnvInfo(return_range=RETURN_RANGES.get(name), episode_steps=gym.spec(name).max_episode_steps)
+
+    def steps_in_parallel(self, env: gym.Env) -> bool:
+        """Gymnasium's MuJoCo tasks (measured on Hopper and HalfCheetah; classic control steps in Python)."""
+        return type(env.unwrapped).__module__.startswith("gymnasium.envs.mujoco")

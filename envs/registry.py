@@ -49,6 +49,13 @@ class EnvFamily(ABC):
         dt = getattr(env.unwrapped, "dt", None)
         return None if dt is None else float(dt)
 
+    def steps_in_parallel(self, env: gym.Env) -> bool:
+        """Whether rows of `env` step faster in threads of one process: its step runs mostly outside Python's
+        lock, as a costly MuJoCo simulation's does. No unless measured: rows whose step is mostly Python only
+        take turns, more slowly than one after another (dm_control's cartpole and gymnasium-robotics' point maze
+        did, dm_control's walker did not: docs/performance.md)."""
+        return False
+
     def state_rules(self) -> StateRules:
         """What a snapshot captures beyond plain data (envs/state.py): random generators, MuJoCo models and
         data (imported here, so that importing the envs loads neither torch nor MuJoCo)."""
@@ -119,11 +126,13 @@ def restore_env(env_id: str, env: gym.Env, state: dict[str, Any]) -> None:
 
 @dataclass(frozen=True)
 class EnvSpaces:
-    """An environment's spaces and base-step duration, read once from a made instance."""
+    """An environment's spaces, base-step duration and whether its rows step in parallel in threads
+    (`EnvFamily.steps_in_parallel`), read once from a made instance."""
 
     observation_space: Space
     action_space: Space
     timestep: float | None
+    parallel: bool = False
 
     def problem(self) -> str | None:
         """Why layers cannot control this environment (they need flat Box spaces with finite action bounds)."""
@@ -139,12 +148,12 @@ class EnvSpaces:
 
 @functools.cache
 def env_spaces(env_id: str) -> EnvSpaces:
-    """The spaces and timestep of a recipe id's environment (made once per process, then closed)."""
+    """The spaces, timestep and parallel steps of a recipe id's environment (made once per process, then closed)."""
     family, name = split_id(env_id)
     source = FAMILIES.get(family)()
     env = source.make(name)
     try:
-        return EnvSpaces(env.observation_space, env.action_space, source.timestep(env))
+        return EnvSpaces(env.observation_space, env.action_space, source.timestep(env), source.steps_in_parallel(env))
     finally:
         env.close()
 

@@ -35,6 +35,8 @@ class Envs(Protocol):
     observation_space: Box
     action_space: Box
     obs: np.ndarray
+    stepping: int
+    """Threads that step the rows, besides the caller's (in this process or in workers)."""
 
     def reset(self, rows: np.ndarray, seeds: Sequence[int | None]) -> None:
         """Start an episode in each row of the `rows` mask; `seeds[k]` seeds row k's environment (None:
@@ -142,6 +144,7 @@ class EnvGroup(Envs):
         self.envs = [make_env(env_id) for _ in range(rows)]
         self.observation_space, self.action_space = spaces(self.envs[0])
         self.obs = np.zeros((rows, *(self.observation_space.shape or ())), np.float32)
+        self.stepping = threads
         self._threads = RowThreads(self.envs, threads)
         self._result: StepResult | None = None
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from layered.cores import usable_cores
 from layered.env_group import EnvGroup, Envs, RowThreads, StepResult, reset_rows, spaces
-from layered.envs import make_env, restore_env, snapshot_env
+from layered.envs import env_spaces, make_env, restore_env, snapshot_env
 
 WorkersSetting = int | Literal["auto"]
 
@@ -45,21 +45,31 @@ def worker_count(setting: WorkersSetting, rows: int, cores: int | None = None) -
     return 0 if cores < 4 or rows < 2 else min(rows, cores // 2)
 
 
-def thread_count(setting: WorkersSetting, rows: int, workers: int) -> int:
+def thread_count(setting: WorkersSetting, rows: int, workers: int, evaluation: bool = False, parallel: bool = True,
+                 cores: int | None = None) -> int:
     """How many threads step the rows in each process that steps them (`rows` rows in `workers` worker
-    processes, or in this one where `workers` is 0): `setting` itself, or for `auto` one in the training
-    process, so that its rows step beside the update it queues, and none in a worker (which steps beside
-    it already) or for a single row (a thread's hand-over would cost a step more than it hides)."""
+    processes, or in this one where `workers` is 0): `setting` itself, or for `auto` none for a single row (a
+    thread's hand-over would cost more than it hides). While training: one in the training process, so that
+    the rows step beside the update it queues, and none in a worker, which steps beside it already. For an
+    evaluation, which has nothing else to run, where the rows step in `parallel` (`EnvFamily.steps_in_parallel`;
+    other rows would only take turns): the cores shared out among the processes that step them."""
     if setting != "auto":
         return setting
-    return 1 if workers == 0 and rows >= 2 else 0
+    if rows < 2:
+        return 0
+    if evaluation and parallel:
+        cores = usable_cores() if cores is None else cores
+        each = min(-(-rows // max(workers, 1)), cores // max(workers, 1))
+        return each if each >= 2 else 0
+    return 0 if workers else 1
 
 
-def open_envs(env_id: str, rows: int, workers: WorkersSetting, threads: WorkersSetting = 0) -> Envs:
-    """`rows` environments of `env_id`, in `worker_count(workers, rows)` worker processes (none: in this one),
-    each stepping its rows in `thread_count(threads, ...)` threads."""
+def open_envs(env_id: str, rows: int, workers: WorkersSetting, threads: WorkersSetting = 0,
+              evaluation: bool = False) -> Envs:
+    """`rows` environments of `env_id` (for training, or for an `evaluation`), in `worker_count(workers, rows)`
+    worker processes (none: in this one), each stepping its rows in `thread_count(threads, ...)` threads."""
     count = worker_count(workers, rows)
-    each = thread_count(threads, rows, count)
+    each = thread_count(threads, rows, count, evaluation, env_spaces(env_id).parallel)
     return EnvWorkers(env_id, rows, count, each) if count else EnvGroup(env_id, rows, each)
 
 
@@ -120,6 +130,7 @@ class EnvWorkers(Envs):
         self._pipes: list[Connection] = []
         self._processes = []
         self._asked: list[int] = []
+        self.stepping = workers * max(threads, 1)
         try:
             for part in self._slices:
                 mine, theirs = context.Pipe()

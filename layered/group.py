@@ -35,7 +35,7 @@ from layered.env_group import Envs
 from layered.env_workers import open_envs
 from layered.envs import make_env, snapshot_env
 from layered.events import EventLog
-from layered.group_eval import all_rows, evaluate_group
+from layered.group_eval import all_rows, evaluate_group, torch_aside
 from layered.group_state import (
     GROUP_CHECKPOINT,
     GroupCheckpoint,
@@ -263,7 +263,7 @@ class Group:
         """The phase's stack (for its layers' spaces and discounts), its rules over `lanes` rows per seed (seed k's
         lane l is row k * lanes + l: an evaluation plays several episodes of a seed side by side), and their envs."""
         rows = self.rows * lanes
-        envs = open_envs(self.recipe.env.id, rows, self.recipe.env.workers, self.recipe.env.threads)
+        envs = open_envs(self.recipe.env.id, rows, self.recipe.env.workers, self.recipe.env.threads, evaluation)
         stack = Stack(self.recipe, envs.observation_space, envs.action_space, active=list(phase.active),
                       evaluation=evaluation)
         rules = Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, rows)
@@ -461,8 +461,9 @@ class Group:
         many side by side as the evaluator has lanes."""
         stack, rules, envs = evaluator
         macs = {self.names[i]: self.learners[self.names[i]].act_macs() for i in stack.active}
-        return evaluate_group(rules, envs, lambda i, obs: self.learners[self.names[i]].greedy(obs), macs,
-                              episodes, [seed.recipe.train.seed + offset for seed in self.seeds])
+        with torch_aside(envs):
+            return evaluate_group(rules, envs, lambda i, obs: self.learners[self.names[i]].greedy(obs), macs,
+                                  episodes, [seed.recipe.train.seed + offset for seed in self.seeds])
 
     def _finish_phase(self, phase: Phase, results: list[PhaseResult]) -> list[dict[str, Any]]:
         """Each seed's phase end as the single loop's: its final and best weights saved, both evaluated on

@@ -3,9 +3,11 @@ one stack, for each seed, from a batch of rules stepping several environments pe
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 
 import numpy as np
+import torch
 
 from layered.env_group import Envs
 from layered.evaluate import episode_seeds
@@ -22,6 +24,22 @@ def all_rows(seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
     full = np.zeros((len(deciding), seen.shape[1]), np.float32)
     full[deciding] = seen
     return full
+
+
+@contextmanager
+def torch_aside(envs: Envs) -> Iterator[None]:
+    """While `envs` step their rows in several threads (of this process or of workers) with nothing beside them (an
+    evaluation): torch on one thread, since its idle workers wait spinning on the cores the rows would step on
+    (see docs/performance.md: evaluations of 8 HalfCheetah seeds on 2 cores took half as long again with two)."""
+    if envs.stepping < 2:
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def evaluate_group(rules: Rules, envs: Envs, policy: GroupPolicy, macs: dict[str, int], episodes: int,

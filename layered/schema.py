@@ -42,8 +42,9 @@ class EnvConfig(Section):
     threads: Whole | Literal["auto"] = "auto"
     """Threads that step a group's environments in each process that steps them (the training process, or
     each worker), a slice of the rows each; MuJoCo's step runs in parallel in them. 0 steps the rows in the
-    process's own thread; `auto` takes one in the training process (the rows step beside the update) and
-    none in workers. Where they step changes no number."""
+    process's own thread. `auto`: while training, one in the training process (the rows step beside the
+    update) and none in workers; for evaluations of Gymnasium's MuJoCo tasks, the cores shared out among
+    the processes that step the rows. Where they step changes no number."""
 
     @field_validator("workers", "threads", mode="before")
     @classmethod

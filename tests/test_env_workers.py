@@ -6,10 +6,12 @@ import os
 import signal
 
 import numpy as np
+import torch
 import pytest
 
 from layered import cores
 from layered.env_group import EnvGroup
+from layered.group_eval import torch_aside
 from layered.env_workers import EnvWorkerError, EnvWorkers, open_envs, thread_count, worker_count
 
 ENV = "Hopper-v5"  # episodes of different lengths, and a MuJoCo state in every snapshot
@@ -28,16 +30,21 @@ def test_how_many_workers_step_the_rows(setting, rows, cores, expected):
     assert worker_count(setting, rows, cores) == expected
 
 
-@pytest.mark.parametrize("setting, rows, workers, expected", [
-    ("auto", 8, 0, 1),  # in the training process: one thread, stepping beside the update
-    ("auto", 1, 0, 0),  # a single row steps in the process's own thread
-    ("auto", 32, 8, 0),  # a worker steps beside the update already
-    (3, 8, 0, 3),  # a number is taken as given
-    (2, 32, 8, 2),
-    (0, 8, 0, 0),
+@pytest.mark.parametrize("setting, rows, workers, evaluation, parallel, cores, expected", [
+    ("auto", 8, 0, False, True, 2, 1),  # training, in the training process: one thread, beside the update
+    ("auto", 1, 0, False, True, 2, 0),  # a single row steps in the process's own thread
+    ("auto", 32, 8, False, True, 16, 0),  # a worker steps beside the update already
+    ("auto", 80, 0, True, True, 2, 2),  # an evaluation: every core
+    ("auto", 80, 0, True, False, 2, 1),  # ... unless the rows would only take turns
+    ("auto", 320, 8, True, True, 16, 2),  # the cores shared out among the workers
+    ("auto", 320, 8, True, True, 8, 0),  # a core each: none
+    ("auto", 16, 8, True, True, 32, 2),  # never more threads than a worker's rows
+    (3, 8, 0, False, True, 2, 3),  # a number is taken as given
+    (2, 32, 8, True, False, 16, 2),
+    (0, 8, 0, True, True, 2, 0),
 ])
-def test_how_many_threads_step_a_process_rows(setting, rows, workers, expected):
-    assert thread_count(setting, rows, workers) == expected
+def test_how_many_threads_step_a_process_rows(setting, rows, workers, evaluation, parallel, cores, expected):
+    assert thread_count(setting, rows, workers, evaluation, parallel, cores) == expected
 
 
 def test_a_process_given_a_share_of_the_cores_counts_those_alone(monkeypatch):
@@ -192,3 +199,23 @@ def test_workers_ignore_a_ctrl_c_at_the_terminal_and_are_gone_after_close():
     finally:
         envs.close()
     assert not any(process.is_alive() for process in processes)
+
+
+@pytest.mark.parametrize("make, during", [
+    (lambda: EnvGroup("Pendulum-v1", 2, 2), 1),  # two threads here
+    (lambda: EnvWorkers("Pendulum-v1", 2, 2), 1),  # two workers
+    (lambda: EnvWorkers("Pendulum-v1", 2, 1, threads=2), 1),  # a worker's two threads
+    (lambda: EnvGroup("Pendulum-v1", 2, 1), 3),  # one thread: torch's cores are free
+    (lambda: EnvGroup("Pendulum-v1", 2, 0), 3),
+], ids=["threads", "workers", "threads-in-a-worker", "one-thread", "the-caller"])
+def test_an_evaluation_stepping_rows_in_several_threads_computes_on_one_torch_thread(make, during):
+    before = torch.get_num_threads()
+    envs = make()
+    try:
+        torch.set_num_threads(3)
+        with torch_aside(envs):
+            assert torch.get_num_threads() == during  # its idle workers would spin on the rows' cores
+        assert torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(before)
+        envs.close()

@@ -109,3 +109,14 @@ def test_without_an_opengl_library_mujoco_steps_and_rendering_is_refused_in_one_
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
     backend, message = done.stdout.strip().splitlines()
     assert backend == "disable" and "apt install libegl1" in message
+
+
+@pytest.mark.parametrize("env_id, parallel", [
+    ("Pendulum-v1", False),  # classic control steps in Python
+    ("Hopper-v5", True),  # MuJoCo's step lets go of Python's lock
+    ("HalfCheetah-v5", True),
+    ("dmc:cartpole-balance", False),  # not measured faster in threads (cartpole was slower)
+    ("robotics:PointMaze_UMaze-v3", False),
+])
+def test_which_environments_step_their_rows_in_parallel_threads(env_id, parallel):
+    assert envs.env_spaces(env_id).parallel is parallel
