@@ -14,7 +14,8 @@ Pendulum-v1; `--hidden`, default 400-300; batch 256), or for the sweep and group
   their sum is the aggregate; GPU memory per seed is the largest process's peak.
 * **group**: `layered train --seeds K --device cuda`, K seeds as one computation in one process, for
   each K of `--groups`, its update eager and captured as CUDA graphs (`--group-modes`), its
-  environments stepped in the training process or in worker processes (`--group-workers`); the rate
+  environments stepped in the training process or in worker processes, and in how many threads of each
+  (`--group-workers`, `env.workers` or `env.workers:env.threads` values); the rate
   of its progress lines times K is the aggregate, and its process's peak GPU memory over K the memory
   per seed.
 
@@ -41,6 +42,8 @@ LeanRL's figure has none, so to compare with it, space the evaluations out (the 
         --group-workers 0 --steps 16000 --eval-every 5000
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 1,4,16,32,64
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --group-workers 0,auto
+    python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --group-modes cudagraphs \
+        --group-workers auto,auto:2,0:1,0:8,16
     python benchmarks/gpu.py --parts group --groups 32 --recipe recipes/hopper/tla-realtime.toml \
         --set layers.slow.warmup=500 --set layers.fast.warmup=1000
     python benchmarks/gpu.py --parts sweep,group --jobs 4,16 --groups 1,4,16,64 --recipe recipes/pendulum/tla-c.toml \
@@ -154,7 +157,7 @@ def _td3_file(folder: str, env: str, hidden: str, steps: int, warmup: int, every
 def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, steps: int, warmup: int, every: int,
           mode: str, workers: str, settings: list[str]) -> dict[str, Any]:
     """`layered train --seeds` with `seeds` seeds as one group, its update as `mode` (learner.compile), its
-    environments stepped by `workers` processes (env.workers), of `recipe` (a file, with `settings`) or the
+    environments stepped as `workers` says (`environment_settings`), of `recipe` (a file, with `settings`) or the
     benchmark's TD3 recipe (evaluated `every` steps); its steps/s (per seed, every seed stepping at once) from
     the progress lines (as `settled_rate` reads them), times the seeds, and its peak GPU memory per seed."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -163,7 +166,7 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
         with DeviceMemory() as memory:
             proc = subprocess.run([sys.executable, "-m", "layered.cli", "train", recipe, "--seeds", str(seeds),
                                    "--steps", str(steps), "--device", device, "--out", str(Path(tmp) / "runs"),
-                                   f"learner.compile={mode}", f"env.workers={workers}", *settings],
+                                   f"learner.compile={mode}", *environment_settings(workers), *settings],
                                   capture_output=True, text=True)
         wall = time.perf_counter() - start
         if proc.returncode != 0:
@@ -174,13 +177,22 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
             "mib_per_seed": None if total is None else total / seeds}
 
 
+def environment_settings(workers: str) -> list[str]:
+    """The recipe settings of a `--group-workers` value: `W` (env.workers, its threads `auto`) or `W:T` (and
+    env.threads)."""
+    processes, _, threads = workers.partition(":")
+    return [f"env.workers={processes}", f"env.threads={threads or 'auto'}"]
+
+
 def training_steps(device: str, env: str, hidden: str, steps: int, warmup: int, seeds: int = 1, workers: str = "0"
                    ) -> float:
     """A group's aggregate steps/s over its training steps alone (its evaluations and checkpoints beyond the run),
     timed step by step by `gpu_profile.py --window 0` in a process of its own."""
+    processes, _, threads = workers.partition(":")
     proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_profile.py"), "--device", device,
                            "--env", env, "--hidden", hidden, "--steps", str(steps), "--warmup", str(warmup),
-                           "--seeds", str(seeds), "--workers", workers, "--window", "0"],
+                           "--seeds", str(seeds), "--workers", processes, "--env-threads", threads or "auto",
+                           "--window", "0"],
                           capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise Failed(_last_line(proc.stderr))
@@ -308,7 +320,8 @@ def main() -> None:
     parser.add_argument("--group-modes", default="off,cudagraphs",
                         help="learner.compile values of the group part: eager, and the update as CUDA graphs")
     parser.add_argument("--group-workers", default="auto",
-                        help="env.workers values of the group part (0,auto: in the training process, and in workers)")
+                        help="env.workers values of the group part (0,auto: in the training process, and in workers), "
+                             "each with its env.threads after a colon if wanted (0:8, auto:2)")
     parser.add_argument("--parts", default="modes,sweep,group",
                         help="which parts to run: modes, sweep, group (the default: all three) and targets")
     parser.add_argument("--target-seeds", type=int, default=32, help="the targets' group size (default 32)")
@@ -346,7 +359,7 @@ def main() -> None:
                       f"{mib(row['mib_per_seed'])} | {row['wall_seconds']:.1f} |", flush=True)
     if "group" in args.parts:
         print(f"\n{args.recipe or args.env}, seeds as one group (layered train --seeds K)\n\n"
-              "| K | learner.compile | env.workers | aggregate steps/s | per seed steps/s | GPU MiB per seed "
+              "| K | learner.compile | env.workers[:threads] | aggregate steps/s | per seed steps/s | GPU MiB per seed "
               "| wall s |\n|---|---|---|---|---|---|---|")
         for k in map(int, args.groups.split(",")):
             for mode in args.group_modes.split(","):
