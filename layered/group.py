@@ -376,6 +376,7 @@ class Group:
         if loop.step >= state.next_checkpoint or self.stop.requested:
             self._checkpoint(loop, decisions, losses, rules, envs)
         if self.stop.requested:
+            self.writer.wait()  # on disk before the stop says so (a write that failed is the error instead)
             raise Stopped(self.stop.requested, state.phase, loop.step, self.directory)
 
     def _checkpoint(self, loop: PhaseLoop, decisions: dict[str, np.ndarray], losses: dict[str, PendingLosses],

@@ -16,6 +16,7 @@ from conftest import assert_same_run, kill_when, passed
 
 from layered.rundir import RunDirError
 from layered.cli import main
+import layered.group as group_module
 from layered.group import Group, resume_group
 from layered.group_state import GROUP_CHECKPOINT, group_dir
 from layered.best_journal import best_folder
@@ -168,6 +169,32 @@ def test_a_stopped_group_is_refused_a_new_start_and_other_steps_and_force_starts
     assert not (tmp_path / "g" / GROUP_CHECKPOINT).exists()
     assert main(["resume", str(tmp_path / "g")]) == 0
     assert "has finished; nothing to resume" in capsys.readouterr().err
+
+
+def test_a_checkpoint_that_cannot_be_written_is_the_error_and_the_one_before_resumes(tmp_path, monkeypatch, capsys):
+    """Checkpoints are written beside training (tests run one torch thread on several cores): a write that fails,
+    here the stop's, is named where the group would have said "checkpoint saved", and the group resumes from
+    the checkpoint before it to the files of a group never stopped."""
+    command = ["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", "0,1", "--steps", "300", *TINY,
+               "train.checkpoint_every=50"]
+    assert main([*command, "--out", str(tmp_path / "whole")]) == 0
+    write = group_module.save_group
+
+    def full_disk(directory, snapshot):
+        if snapshot["loop"]["step"] == 120:
+            raise OSError(28, "No space left on device")
+        write(directory, snapshot)
+
+    monkeypatch.setattr(group_module, "save_group", full_disk)
+    stop_at(monkeypatch, [(0, 120)])
+    out = tmp_path / "stopped"
+    assert main([*command, "--out", str(out)]) != 130
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "checkpoint saved" not in err
+    monkeypatch.undo()
+    assert main(["resume", str(out)]) == 0
+    assert "continues from its checkpoint in phase 0 at step 100" in capsys.readouterr().err
+    assert_same_group(tmp_path / "whole", out, (0, 1))
 
 
 def test_a_sweep_of_groups_resumes_a_stopped_group(tmp_path, monkeypatch):
