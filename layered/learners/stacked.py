@@ -127,9 +127,9 @@ class StackedAdam:
                     beta2=self.beta2, lr=self.lr, weight_decay=0.0, eps=self.eps, maximize=False)
 
     def state_dict(self) -> dict[str, Any]:
-        """Every seed's moments and step count, for resuming a group."""
-        return {"exp_avg": [m.clone() for m in self.exp_avg], "exp_avg_sq": [v.clone() for v in self.exp_avg_sq],
-                "steps": self.steps.clone()}
+        """Every seed's moments and step count, for resuming a group: the tensors themselves, as a module's
+        `state_dict` gives its parameters (a checkpoint written beside training copies them first)."""
+        return {"exp_avg": list(self.exp_avg), "exp_avg_sq": list(self.exp_avg_sq), "steps": self.steps}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what `state_dict` returned (the learning rate stays the configuration's)."""
