@@ -382,8 +382,9 @@ class Group:
     def _checkpoint(self, loop: PhaseLoop, decisions: dict[str, np.ndarray], losses: dict[str, PendingLosses],
                     rules: Rules, envs: Envs) -> None:
         """Save where the group stands, at any step: each seed's loop state (its losses read back first and
-        its logs' sizes), the phase's open transitions, the rules' rows, the environments and the learners,
-        copied here and written while the group goes on (`layered.checkpoint_writer`)."""
+        its logs' sizes), the phase's open transitions, the rules' rows, the environments and the learners;
+        where the writer is beside training, copied here and written while the group goes on
+        (`layered.checkpoint_writer`)."""
         self.writer.wait()  # the checkpoint before is on disk, what it replaced removed: this one records from there
         _read_back(losses, self.seeds, loop.step)
         interval = checkpoint_interval(self.recipe)
