@@ -48,17 +48,18 @@ def worker_count(setting: WorkersSetting, rows: int, cores: int | None = None) -
 def thread_count(setting: WorkersSetting, rows: int, workers: int, evaluation: bool = False, parallel: bool = True,
                  cores: int | None = None) -> int:
     """How many threads step the rows in each process that steps them (`rows` rows in `workers` worker
-    processes, or in this one where `workers` is 0): `setting` itself, or for `auto` none for a single row (a
-    thread's hand-over would cost more than it hides). While training: one in the training process, so that
-    the rows step beside the update it queues, and none in a worker, which steps beside it already. For an
-    evaluation, which has nothing else to run, where the rows step in `parallel` (`EnvFamily.steps_in_parallel`;
-    other rows would only take turns): the cores shared out among the processes that step them."""
+    processes, or in this one where `workers` is 0): `setting` itself, or for `auto` none for a single row or
+    on a single core (a thread's hand-over would cost more than it hides; a sweep's group may have one core).
+    While training: one in the training process, so that the rows step beside the update it queues, and none
+    in a worker, which steps beside it already. For an evaluation, which has nothing else to run, where the
+    rows step in `parallel` (`EnvFamily.steps_in_parallel`; other rows would only take turns): the cores
+    shared out among the processes that step them."""
     if setting != "auto":
         return setting
-    if rows < 2:
+    cores = usable_cores() if cores is None else cores
+    if rows < 2 or cores < 2:
         return 0
     if evaluation and parallel:
-        cores = usable_cores() if cores is None else cores
         each = min(-(-rows // max(workers, 1)), cores // max(workers, 1))
         return each if each >= 2 else 0
     return 0 if workers else 1

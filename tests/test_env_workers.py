@@ -33,6 +33,7 @@ def test_how_many_workers_step_the_rows(setting, rows, cores, expected):
 @pytest.mark.parametrize("setting, rows, workers, evaluation, parallel, cores, expected", [
     ("auto", 8, 0, False, True, 2, 1),  # training, in the training process: one thread, beside the update
     ("auto", 1, 0, False, True, 2, 0),  # a single row steps in the process's own thread
+    ("auto", 8, 0, False, True, 1, 0),  # so do the rows of a process with one core (a sweep's group)
     ("auto", 32, 8, False, True, 16, 0),  # a worker steps beside the update already
     ("auto", 80, 0, True, True, 2, 2),  # an evaluation: every core
     ("auto", 80, 0, True, False, 2, 1),  # ... unless the rows would only take turns
