@@ -21,7 +21,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.spaces import Box
 
-from layered.envs import make_env, restore_env, snapshot_env
+from layered.envs import EnvSpaces, make_env, restore_env, snapshot_env
 
 StepResult = tuple[np.ndarray, np.ndarray, np.ndarray]
 """The rewards, terminations and truncations of one step of every row ([K] each; zero and False in the
@@ -126,11 +126,13 @@ class RowThreads:
 def _step_slice(envs: Sequence[gym.Env], part: slice, actions: np.ndarray, rows: np.ndarray, obs: np.ndarray,
                 result: StepResult) -> None:
     """`step_rows` on the rows of `part` alone."""
-    step_rows(envs[part], actions[part], rows[part], obs[part], tuple(array[part] for array in result))  # type: ignore[arg-type]
+    parts: StepResult = tuple(array[part] for array in result)  # type: ignore[assignment]
+    step_rows(envs[part], actions[part], rows[part], obs[part], parts)
 
 
-def spaces(env: gym.Env) -> tuple[Box, Box]:
-    """An environment's observation and action spaces, both boxes (the recipe checks refuse other spaces)."""
+def spaces(env: gym.Env | EnvSpaces) -> tuple[Box, Box]:
+    """An environment's observation and action spaces (of one made, or as `env_spaces` read them), both boxes
+    (the recipe checks refuse other spaces)."""
     space, action_space = env.observation_space, env.action_space
     assert isinstance(space, Box) and isinstance(action_space, Box), "the recipe checks refuse other spaces"
     return space, action_space

@@ -120,9 +120,7 @@ class EnvWorkers(Envs):
 
     def __init__(self, env_id: str, rows: int, workers: int, threads: int = 0) -> None:
         self.env_id = env_id
-        probe = make_env(env_id)  # the spaces, read here as `EnvGroup` reads them
-        self.observation_space, self.action_space = spaces(probe)
-        probe.close()
+        self.observation_space, self.action_space = spaces(env_spaces(env_id))  # (read once per process)
         context = _context()
         self._shared = _Shared(rows, self.observation_space.shape[0], self.action_space.shape[0], context)
         self.obs = self._shared.obs

@@ -43,8 +43,8 @@ class EnvConfig(Section):
     """Threads that step a group's environments in each process that steps them (the training process, or
     each worker), a slice of the rows each; MuJoCo's step runs in parallel in them. 0 steps the rows in the
     process's own thread. `auto`: while training, one in the training process (the rows step beside the
-    update) where it has 2 cores or more, and none in workers; for evaluations of Gymnasium's MuJoCo tasks, the cores shared out among
-    the processes that step the rows. Where they step changes no number."""
+    update) where it has 2 cores or more, and none in workers; for evaluations of Gymnasium's MuJoCo tasks,
+    the cores shared out among the processes that step the rows. Where they step changes no number."""
 
     @field_validator("workers", "threads", mode="before")
     @classmethod
