@@ -35,6 +35,9 @@ class Envs(Protocol):
     observation_space: Box
     action_space: Box
     obs: np.ndarray
+    last: np.ndarray
+    """After a step with `restart`: the observations each row's step ended in (`obs` holds the first of the next
+    episode where one ended)."""
     stepping: int
     """Threads that step the rows, besides the caller's (in this process or in workers)."""
 
@@ -42,8 +45,10 @@ class Envs(Protocol):
         """Start an episode in each row of the `rows` mask; `seeds[k]` seeds row k's environment (None:
         its generator goes on)."""
 
-    def step_async(self, actions: np.ndarray, rows: np.ndarray) -> None:
-        """Ask for `actions[k]` ([K, action]) to be executed in each row of the `rows` mask."""
+    def step_async(self, actions: np.ndarray, rows: np.ndarray, restart: bool = False) -> None:
+        """Ask for `actions[k]` ([K, action]) to be executed in each row of the `rows` mask; with `restart`, a row
+        whose episode ends starts its next one in the same step, unseeded (as `reset` with None does), so that
+        no round trip of its own is needed: the step's observations are in `last`, the next decisions' in `obs`."""
 
     def step_wait(self) -> StepResult:
         """The asked-for step's results, the observations updated in `obs`."""
@@ -64,13 +69,20 @@ class Envs(Protocol):
 
 
 def step_rows(envs: Sequence[gym.Env], actions: np.ndarray, rows: np.ndarray, obs: np.ndarray,
-              result: StepResult) -> None:
+              result: StepResult, last: np.ndarray | None = None) -> None:
     """Step `envs[k]` with `actions[k]` for each k in the `rows` mask, writing its observation into `obs[k]`
-    and its reward and flags into `result`'s row k (the other rows are left as they are)."""
+    and its reward and flags into `result`'s row k (the other rows are left as they are). With `last`, the
+    observation goes there, and a row whose episode ended is reset unseeded (its generator going on, as
+    `reset_rows` resets it without a seed), `obs[k]` its next episode's first observation."""
     reward, terminated, truncated = result
     for k in np.flatnonzero(rows).tolist():
-        obs[k], r, terminated[k], truncated[k], _ = envs[k].step(actions[k].astype(np.float32))
+        seen, r, terminated[k], truncated[k], _ = envs[k].step(actions[k].astype(np.float32))
         reward[k] = float(r)
+        if last is not None:
+            last[k] = seen
+            if terminated[k] or truncated[k]:
+                seen, _ = envs[k].reset(seed=None)
+        obs[k] = seen
 
 
 def reset_rows(envs: Sequence[gym.Env], rows: np.ndarray, seeds: Sequence[int | None], obs: np.ndarray) -> None:
@@ -93,14 +105,15 @@ class RowThreads:
         bounds = np.linspace(0, len(envs), min(threads, len(envs)) + 1).round().astype(int).tolist()
         self._slices = [slice(a, b) for a, b in itertools.pairwise(bounds)] if threads else []
         self._pool = ThreadPoolExecutor(len(self._slices), "layered-rows") if self._slices else None
-        self._asked: tuple[np.ndarray, np.ndarray, np.ndarray, StepResult] | None = None
+        self._asked: tuple[np.ndarray, np.ndarray, np.ndarray, StepResult, np.ndarray | None] | None = None
         self._running: list[Future[None]] = []
 
-    def start(self, actions: np.ndarray, rows: np.ndarray, obs: np.ndarray, result: StepResult) -> None:
+    def start(self, actions: np.ndarray, rows: np.ndarray, obs: np.ndarray, result: StepResult,
+              last: np.ndarray | None = None) -> None:
         """Begin stepping the rows of the `rows` mask as `step_rows` does (with copies of `actions` and `rows`,
-        which the caller may change meanwhile), into `obs` and `result`."""
+        which the caller may change meanwhile), into `obs`, `result` and `last`."""
         assert self._asked is None and not self._running, "a step is under way: wait for it first"
-        asked = (actions.copy(), rows.copy(), obs, result)
+        asked = (actions.copy(), rows.copy(), obs, result, last)
         if self._pool is None:
             self._asked = asked
             return
@@ -110,8 +123,8 @@ class RowThreads:
     def wait(self) -> None:
         """Wait until the started step is done; the first error a thread met is raised once all are done."""
         if self._asked is not None:
-            (actions, rows, obs, result), self._asked = self._asked, None
-            step_rows(self.envs, actions, rows, obs, result)
+            (actions, rows, obs, result, last), self._asked = self._asked, None
+            step_rows(self.envs, actions, rows, obs, result, last)
         running, self._running = self._running, []
         errors = [error for future in running if (error := future.exception()) is not None]
         if errors:
@@ -124,10 +137,10 @@ class RowThreads:
 
 
 def _step_slice(envs: Sequence[gym.Env], part: slice, actions: np.ndarray, rows: np.ndarray, obs: np.ndarray,
-                result: StepResult) -> None:
+                result: StepResult, last: np.ndarray | None) -> None:
     """`step_rows` on the rows of `part` alone."""
     parts: StepResult = tuple(array[part] for array in result)  # type: ignore[assignment]
-    step_rows(envs[part], actions[part], rows[part], obs[part], parts)
+    step_rows(envs[part], actions[part], rows[part], obs[part], parts, None if last is None else last[part])
 
 
 def spaces(env: gym.Env | EnvSpaces) -> tuple[Box, Box]:
@@ -146,6 +159,7 @@ class EnvGroup(Envs):
         self.envs = [make_env(env_id) for _ in range(rows)]
         self.observation_space, self.action_space = spaces(self.envs[0])
         self.obs = np.zeros((rows, *(self.observation_space.shape or ())), np.float32)
+        self.last = np.zeros_like(self.obs)
         self.stepping = threads
         self._threads = RowThreads(self.envs, threads)
         self._result: StepResult | None = None
@@ -153,9 +167,11 @@ class EnvGroup(Envs):
     def reset(self, rows: np.ndarray, seeds: Sequence[int | None]) -> None:
         reset_rows(self.envs, rows, seeds, self.obs)
 
-    def step_async(self, actions: np.ndarray, rows: np.ndarray) -> None:
+    def step_async(self, actions: np.ndarray, rows: np.ndarray, restart: bool = False) -> None:
         self._result = (np.zeros(len(self.envs)), np.zeros(len(self.envs), bool), np.zeros(len(self.envs), bool))
-        self._threads.start(actions, rows, self.obs, self._result)
+        if restart:
+            np.copyto(self.last, self.obs, where=~rows[:, None])  # (the rows not stepped end where they were)
+        self._threads.start(actions, rows, self.obs, self._result, self.last if restart else None)
 
     def step_wait(self) -> StepResult:
         assert self._result is not None, "step_wait collects the step step_async asked for"

@@ -90,6 +90,7 @@ class _Shared:
     def __init__(self, rows: int, obs_dim: int, action_dim: int, context: Any) -> None:
         self.shape = (rows, obs_dim, action_dim)
         self.raw = {"obs": context.RawArray(ctypes.c_float, rows * obs_dim),
+                    "last": context.RawArray(ctypes.c_float, rows * obs_dim),
                     "actions": context.RawArray(ctypes.c_float, rows * action_dim),
                     "rows": context.RawArray(ctypes.c_bool, rows),
                     "reward": context.RawArray(ctypes.c_double, rows),
@@ -102,6 +103,7 @@ class _Shared:
         rows, obs_dim, action_dim = self.shape
         raw = self.raw
         self.obs = np.frombuffer(raw["obs"], np.float32).reshape(rows, obs_dim)
+        self.last = np.frombuffer(raw["last"], np.float32).reshape(rows, obs_dim)
         self.actions = np.frombuffer(raw["actions"], np.float32).reshape(rows, action_dim)
         self.rows = np.frombuffer(raw["rows"], bool)
         self.result: StepResult = (np.frombuffer(raw["reward"], np.float64), np.frombuffer(raw["terminated"], bool),
@@ -123,7 +125,7 @@ class EnvWorkers(Envs):
         self.observation_space, self.action_space = spaces(env_spaces(env_id))  # (read once per process)
         context = _context()
         self._shared = _Shared(rows, self.observation_space.shape[0], self.action_space.shape[0], context)
-        self.obs = self._shared.obs
+        self.obs, self.last = self._shared.obs, self._shared.last
         bounds = np.linspace(0, rows, workers + 1).round().astype(int).tolist()
         self._slices = [slice(a, b) for a, b in itertools.pairwise(bounds)]
         self._pipes: list[Connection] = []
@@ -150,13 +152,15 @@ class EnvWorkers(Envs):
         self._ask("reset", list(seeds), rows)
         self._collect()
 
-    def step_async(self, actions: np.ndarray, rows: np.ndarray) -> None:
+    def step_async(self, actions: np.ndarray, rows: np.ndarray, restart: bool = False) -> None:
         assert not self._asked, "a step is under way: collect it with step_wait first"
         self._shared.actions[:] = actions
         self._shared.rows[:] = rows
         for array in self._shared.result:
             array[:] = 0  # the rows not stepped: zero and False
-        self._ask("step", None, rows)
+        if restart:
+            np.copyto(self.last, self.obs, where=~rows[:, None])  # (the rows not stepped end where they were)
+        self._ask("step and restart" if restart else "step", None, rows)
 
     def step_wait(self) -> StepResult:
         self._collect()
@@ -255,9 +259,10 @@ def _serve(pipe: Connection, env_id: str, part: slice, threads: int, shared: _Sh
 def _carry_out(command: str, argument: Any, envs: list[Any], stepping: RowThreads, env_id: str, part: slice,
                shared: _Shared) -> Any:
     """One command on the worker's rows; what it answers."""
-    if command == "step":
+    if command in ("step", "step and restart"):
         stepping.start(shared.actions[part], shared.rows[part], shared.obs[part],
-                       tuple(array[part] for array in shared.result))  # type: ignore[arg-type]
+                       tuple(array[part] for array in shared.result),  # type: ignore[arg-type]
+                       shared.last[part] if command == "step and restart" else None)
         stepping.wait()
         return None
     if command == "reset":

@@ -318,28 +318,27 @@ class Group:
                         pending[i].output[rows] = rules.decided[i][rows]
                         _check_finite(rules.decided[i][rows], "action", f"layer {self.names[i]!r}", p, loop.step)
                 composition = rules.compose()
-                envs.step_async(composition.action, every)
+                envs.step_async(composition.action, every, restart=True)  # (an episode that ends starts again)
                 for i in learn:  # queued while the environments step (on a GPU, or with env.workers)
                     self._update(self.names[i], decided[i] & (decisions[i] > warmups[i]), losses)
                 reward, terminated, truncated = envs.step_wait()
-                _check_finite(envs.obs, "observation", "the environment", p, loop.step)
+                _check_finite(envs.last, "observation", "the environment", p, loop.step)
                 shares = rules.layer_rewards(reward, composition)
                 rules.tick()
                 ended = terminated | truncated
                 for i, mine in pending.items():
                     mine.accrue(shares[i])
-                _end_periods(pending, ended, rules, envs.obs, stack)
+                _end_periods(pending, ended, rules, envs.last, stack)
                 loop.returns += reward
                 loop.lengths += 1
                 loop.step += 1
                 bar.advance(1)
                 if ended.any():
                     for i, mine in pending.items():
-                        self._store(i, mine, ended & mine.open, rules.observation(i, envs.obs), terminated, stack)
+                        self._store(i, mine, ended & mine.open, rules.observation(i, envs.last), terminated, stack)
                         mine.open[ended] = False
                     self._log_episodes(ended, p, loop)
-                    envs.reset(ended, [None] * self.rows)
-                    rules.reset(ended)
+                    rules.reset(ended)  # (the environments of those rows started their next episodes already)
                 self._due(phase, loop, {self.names[i]: d for i, d in decisions.items()}, losses, rules, envs,
                           evaluator, bar)
             if self.seeds[0].state.curve[-1][0] != loop.step:

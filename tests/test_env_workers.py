@@ -68,9 +68,9 @@ def test_open_envs_steps_here_without_workers_and_in_processes_with_them():
         there.close()
 
 
-def play(envs, steps: int, seed: int, snapshot_at: int | None = None):
-    """Random actions in random subsets of the rows, ended rows reset; what every step gave, and the
-    snapshots and observations at `snapshot_at`."""
+def play(envs, steps: int, seed: int, snapshot_at: int | None = None, restart: bool = False):
+    """Random actions in random subsets of the rows, ended rows reset (by the step itself, with `restart`); what
+    every step gave, and the snapshots and observations at `snapshot_at`."""
     rng = np.random.default_rng(seed)
     rows = len(envs.obs)
     envs.reset(np.ones(rows, bool), [10 + k for k in range(rows)])
@@ -80,10 +80,12 @@ def play(envs, steps: int, seed: int, snapshot_at: int | None = None):
             saved = (envs.snapshots(), envs.obs.copy())
         actions = rng.uniform(-1, 1, (rows, 3)).astype(np.float32)
         mask = rng.random(rows) < 0.7
-        reward, terminated, truncated = envs.step(actions, mask)
+        envs.step_async(actions, mask, restart)
+        reward, terminated, truncated = envs.step_wait()
         assert not reward[~mask].any() and not terminated[~mask].any() and not truncated[~mask].any()
-        trace += [reward.copy(), terminated.copy(), truncated.copy(), envs.obs.copy()]
-        envs.reset(terminated | truncated, [None] * rows)
+        trace += [reward.copy(), terminated.copy(), truncated.copy(), (envs.last if restart else envs.obs).copy()]
+        if not restart:
+            envs.reset(terminated | truncated, [None] * rows)
         trace.append(envs.obs.copy())
     return trace, saved
 
@@ -138,6 +140,22 @@ def test_rows_stepped_in_threads_of_workers_give_what_they_give_here():
     finally:
         here.close()
         there.close()
+
+
+@pytest.mark.parametrize("make", [lambda: EnvGroup(ENV, 5), lambda: EnvGroup(ENV, 5, 2), lambda: EnvWorkers(ENV, 5, 2),
+                                  lambda: EnvWorkers(ENV, 5, 2, threads=2)],
+                         ids=["here", "threads", "workers", "threads-of-workers"])
+def test_a_step_that_restarts_ended_episodes_gives_what_a_step_and_a_reset_give(make):
+    alone, restarting = EnvGroup(ENV, 5), make()
+    try:
+        expected, saved = play(alone, 120, seed=4, snapshot_at=70)
+        got, saved_restarting = play(restarting, 120, seed=4, snapshot_at=70, restart=True)
+        assert sum(t.sum() for t in expected[2::5]) >= 5, "episodes ended (Hopper falls under random actions)"
+        assert_same_trace(expected, got)  # the step's observations in `last`, the next episodes' first in `obs`
+        assert np.array_equal(saved[1], saved_restarting[1])
+    finally:
+        alone.close()
+        restarting.close()
 
 
 def test_a_failure_in_a_thread_is_raised_when_the_step_is_collected_and_the_rows_step_again_after():
