@@ -64,7 +64,7 @@ from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_r
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
 from layered.rules import Rules
 from layered.runs import unavailable_settings, warmup_warnings
-from layered.runstate import LoopState, UpdateStats, recipe_digest
+from layered.runstate import LoopState, recipe_digest
 from layered.stack import Stack
 from layered.trainer import (
     FRESH_MEASURES,
@@ -521,15 +521,24 @@ def _read_back(losses: dict[str, PendingLosses], seeds: Sequence[Seed], step: in
     """Add the losses of each layer's updates since the last read-back to each seed's loop state (each
     update a seed took part in, as the single loop's `UpdateStats`), read off the device in one copy per
     layer; a non-finite one stops the group."""
-    names = TD3Group.loss_names
     for name, pending in losses.items():
-        for values, took in pending.read():
-            for k in np.flatnonzero(took["critic"]).tolist():
-                stats: UpdateStats = {f"{n}_loss": float(values[n][k]) if n in values and took[n][k] else None
-                                      for n in names}
-                _check_finite(np.array([v for v in stats.values() if v is not None]), "loss", f"layer {name!r}",
-                              seeds[k].state.phase, step)
-                seeds[k].state.losses[name].append(stats)
+        read = pending.read()
+        if not read:
+            continue
+        took = np.stack([masks["critic"] for _, masks in read])  # [updates, K]: the seeds each update stepped
+        absent = np.zeros(took.shape[1])
+        columns = {}  # per loss: [updates, K] values, and whether the update computed them for the seed
+        for n in TD3Group.loss_names:
+            computed = np.stack([masks.get(n, absent.astype(bool)) for _, masks in read]) & took
+            values = np.stack([update.get(n, absent) for update, _ in read])
+            _check_finite(values[computed], "loss", f"layer {name!r}", seeds[0].state.phase, step)
+            columns[f"{n}_loss"] = (values, computed)
+        for k, seed in enumerate(seeds):
+            updates = np.flatnonzero(took[:, k])
+            per_loss = [[value if kept else None for value, kept in zip(values[updates, k].tolist(),
+                                                                        computed[updates, k].tolist(), strict=True)]
+                        for values, computed in columns.values()]
+            seed.state.losses[name] += [dict(zip(columns, stats, strict=True)) for stats in zip(*per_loss, strict=True)]
 
 
 def _check_finite(values: np.ndarray, what: str, who: str, phase: int, step: int) -> None:

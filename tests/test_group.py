@@ -183,3 +183,39 @@ def test_a_repeating_layers_decisions_carry_the_path_its_own_stack_gives(tmp_pat
             for (o1, r1, u1), (o2, r2, u2) in zip(alone.path, path, strict=True):
                 assert np.allclose(o1, o2, atol=1e-6) and r1 == pytest.approx(r2, abs=1e-5) and u1 == u2, t
         env.close()
+
+
+def test_each_seed_reads_back_the_losses_of_the_updates_it_took_part_in():
+    """Three updates of three seeds: the losses each seed's loop state gets, written out by hand; a non-finite
+    value of a seed left out of an update is never read, one of a seed that took part stops the group."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from layered.group import _read_back
+    from layered.pending_losses import PendingLosses
+    from layered.runstate import LoopState
+    from layered.trainer import Diverged
+
+    def read(updates):
+        pending, seeds = PendingLosses(), [SimpleNamespace(state=LoopState(losses={"fast": []})) for _ in range(3)]
+        for values, took in updates:
+            pending.add({n: torch.tensor(v, dtype=torch.float32) for n, v in values.items()},
+                        {n: np.array(t) for n, t in took.items()})
+        _read_back({"fast": pending}, seeds, 7)
+        return [seed.state.losses["fast"] for seed in seeds]
+
+    nan = float("nan")
+    updates = [({"critic": [1.0, 2.0, nan]}, {"critic": [True, True, False]}),  # seed 2 left out: its value unread
+               ({"critic": [3.0, nan, 4.0], "actor": [-1.0, nan, -2.0]},
+                {"critic": [True, False, True], "actor": [True, False, False]}),  # seed 2's actor did not step
+               ({"critic": [5.0, 6.0, 7.0], "actor": [-3.0, -4.0, -5.0]},
+                {"critic": [True, True, True], "actor": [True, True, True]})]
+    assert read(updates) == [
+        [{"critic_loss": 1.0, "actor_loss": None}, {"critic_loss": 3.0, "actor_loss": -1.0},
+         {"critic_loss": 5.0, "actor_loss": -3.0}],
+        [{"critic_loss": 2.0, "actor_loss": None}, {"critic_loss": 6.0, "actor_loss": -4.0}],
+        [{"critic_loss": 4.0, "actor_loss": None}, {"critic_loss": 7.0, "actor_loss": -5.0}]]
+    updates[2][0]["actor"][1] = float("inf")
+    with pytest.raises(Diverged, match="layer 'fast' met a non-finite loss in phase 0 at step 7"):
+        read(updates)
