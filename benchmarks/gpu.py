@@ -17,7 +17,9 @@ Pendulum-v1; `--hidden`, default 400-300; batch 256), or for the sweep and group
   environments stepped in the training process or in worker processes, and in how many threads of each
   (`--group-workers`, `env.workers` or `env.workers:env.threads` values); the rate
   of its progress lines times K is the aggregate, and its process's peak GPU memory over K the memory
-  per seed.
+  per seed. With `--splits S` the K seeds are also cut into S groups trained at once, each its own
+  process pinned to its share of the cores (where a group's host work, not the GPU, sets its pace, S
+  processes do S times the host work), under CUDA MPS; their rates summed are the aggregate.
 
 GPU memory is what the driver reports per process (`nvidia-smi`, polled; the CUDA context included,
 about 0.5 GB a process), so a sweep pays a context per seed and a group one in all (`device_memory.py`).
@@ -26,8 +28,9 @@ A fourth part, **targets**, measures the figures the vectorised engine is held t
 it must reach, in one table: one TD3 seed on HalfCheetah-v5 with 256-256 networks (the best of the
 single run's `--modes` and a group of one's, over training steps alone as LeanRL's published 936
 steps/s on an H100 are, and a group of one's `--group-modes` with its evaluations), `--target-seeds`
-(32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s; over training steps alone too) and
-as many seeds of the real-time Hopper TLA recipe (10,000), the groups' environments in `--group-workers`.
+(32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s; over training steps alone too) and as
+`--splits` groups at once, and as many seeds of the real-time Hopper TLA recipe as one group (10,000), the
+groups' environments in `--group-workers`.
 A failed setting is a row that says why; the others still run.
 
 The rates of the sweep, group and targets parts are read from progress lines, and each interval between
@@ -44,12 +47,14 @@ LeanRL's figure has none, so to compare with it, space the evaluations out (the 
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --group-workers 0,auto
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --group-modes cudagraphs \
         --group-workers auto,auto:2,0:1,0:8,16
+    python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --splits 1,2,4 --group-modes cudagraphs
     python benchmarks/gpu.py --parts group --groups 32 --recipe recipes/hopper/tla-realtime.toml \
         --set layers.slow.warmup=500 --set layers.fast.warmup=1000
     python benchmarks/gpu.py --parts sweep,group --jobs 4,16 --groups 1,4,16,64 --recipe recipes/pendulum/tla-c.toml \
         --set layers.slow.warmup=250 --set layers.fast.warmup=500 --set eval.every=500 --set eval.episodes=1 \
         --set eval.fresh_episodes=0 --steps 3000
-    python benchmarks/gpu.py --device cpu --modes off,inductor --jobs 1,2 --groups 1,2 --group-modes off --steps 1500
+    python benchmarks/gpu.py --device cpu --modes off,inductor --jobs 1,2 --groups 1,2 --splits 1,2 --group-modes off \
+        --steps 1500
     python benchmarks/gpu.py --device cpu --parts targets --modes off --group-modes off --target-seeds 2 --steps 1500
 
 The last two run on a CPU (without `cudagraphs`), to check the script itself.
@@ -69,6 +74,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import tomli_w
 from device_memory import DeviceMemory, mib
 
@@ -155,26 +161,42 @@ def _td3_file(folder: str, env: str, hidden: str, steps: int, warmup: int, every
 
 
 def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, steps: int, warmup: int, every: int,
-          mode: str, workers: str, settings: list[str]) -> dict[str, Any]:
+          mode: str, workers: str, settings: list[str], splits: int = 1) -> dict[str, Any]:
     """`layered train --seeds` with `seeds` seeds as one group, its update as `mode` (learner.compile), its
     environments stepped as `workers` says (`environment_settings`), of `recipe` (a file, with `settings`) or the
     benchmark's TD3 recipe (evaluated `every` steps); its steps/s (per seed, every seed stepping at once) from
-    the progress lines (as `settled_rate` reads them), times the seeds, and its peak GPU memory per seed."""
+    the progress lines (as `settled_rate` reads them), times the seeds, and its peak GPU memory per seed.
+    With `splits`, the seeds are cut into that many groups trained at once, each `layered train --seeds` process
+    on its own share of the cores (so that `auto` sizes its workers to the share), under CUDA MPS on a GPU
+    (started where it can be); the aggregate is the sum of the groups'."""
+    from layered.cuda_mps import shared_gpu
+
+    parts = [[int(s) for s in part] for part in np.array_split(np.arange(seeds), splits)]
+    shares = [set(map(int, share)) for share in np.array_split(sorted(os.sched_getaffinity(0)), splits)]
     with tempfile.TemporaryDirectory() as tmp:
         recipe = recipe or _td3_file(tmp, env, hidden, steps, warmup, every)
+        logs = [Path(tmp) / f"group{j}.log" for j in range(splits)]
         start = time.perf_counter()
-        with DeviceMemory() as memory:
-            proc = subprocess.run([sys.executable, "-m", "layered.cli", "train", recipe, "--seeds", str(seeds),
-                                   "--steps", str(steps), "--device", device, "--out", str(Path(tmp) / "runs"),
-                                   f"learner.compile={mode}", *environment_settings(workers), *settings],
-                                  capture_output=True, text=True)
+        with shared_gpu(splits if device == "cuda" else 1), DeviceMemory() as memory:
+            processes = []
+            for part, share, log in zip(parts, shares, logs, strict=True):
+                with log.open("w") as err:
+                    processes.append(subprocess.Popen(
+                        [sys.executable, "-m", "layered.cli", "train", recipe, "--seeds", f"{part[0]}-{part[-1]}",
+                         "--steps", str(steps), "--device", device, "--out", str(Path(tmp) / f"runs{part[0]}"),
+                         *(["--threads", str(len(share))] if splits > 1 else []), f"learner.compile={mode}",
+                         *environment_settings(workers), *settings],
+                        stdout=subprocess.DEVNULL, stderr=err, text=True,
+                        preexec_fn=(lambda share=share: os.sched_setaffinity(0, share)) if splits > 1 else None))
+            codes = [process.wait() for process in processes]
         wall = time.perf_counter() - start
-        if proc.returncode != 0:
-            raise Failed(f"group of {seeds} failed: {_last_line(proc.stderr)}")
-        rate = settled_rate(proc.stderr)
+        for code, log in zip(codes, logs, strict=True):
+            if code != 0:
+                raise Failed(f"group of {seeds} failed: {_last_line(log.read_text())}")
+        rates = [settled_rate(log.read_text()) for log in logs]
     total = memory.total()
-    return {"seeds": seeds, "per_seed": rate, "aggregate": rate * seeds, "wall_seconds": wall,
-            "mib_per_seed": None if total is None else total / seeds}
+    return {"seeds": seeds, "per_seed": rates, "aggregate": sum(r * len(p) for r, p in zip(rates, parts, strict=True)),
+            "wall_seconds": wall, "mib_per_seed": None if total is None else total / seeds}
 
 
 def environment_settings(workers: str) -> list[str]:
@@ -249,7 +271,7 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
                  lambda mode=mode: group(args.device, 1, None, "HalfCheetah-v5", "256,256", args.steps, args.warmup,
                                          every(args), mode, "0", [])["aggregate"])
     for what, recipe, env, settings, needed in (
-            (f"{k} TD3 seeds of Hopper-v5, 400-300, one group", None, "Hopper-v5", [], 20_000),
+            (f"{k} TD3 seeds of Hopper-v5, 400-300", None, "Hopper-v5", [], 20_000),
             (f"{k} seeds of real-time Hopper TLA (2 layers), one group", str(REALTIME_TLA), "Hopper-v5",
              [*REALTIME_WARMUP, f"eval.every={every(args)}", "eval.episodes=1", "eval.fresh_episodes=0"],
              10_000)):
@@ -259,10 +281,12 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
                     measured(what, f"compile {mode}, env.workers {workers}, training steps alone", needed,
                              lambda env=env, workers=workers: training_steps(args.device, env, "400,300", args.steps,
                                                                     args.warmup, k, workers))
-                measured(what, f"compile {mode}, env.workers {workers}", needed,
-                         lambda recipe=recipe, env=env, settings=settings, mode=mode, workers=workers: group(
-                             args.device, k, recipe, env, "400,300", args.steps, args.warmup, every(args), mode,
-                             workers, settings)["aggregate"])
+                for splits in (1,) if recipe is not None else map(int, args.splits.split(",")):
+                    apart = ", one group" if splits == 1 else f", {splits} groups at once"
+                    measured(what, f"compile {mode}, env.workers {workers}{apart}", needed,
+                             lambda recipe=recipe, env=env, settings=settings, mode=mode, workers=workers,
+                             splits=splits: group(args.device, k, recipe, env, "400,300", args.steps, args.warmup,
+                                                  every(args), mode, workers, settings, splits)["aggregate"])
     return rows
 
 
@@ -322,6 +346,9 @@ def main() -> None:
     parser.add_argument("--group-workers", default="auto",
                         help="env.workers values of the group part (0,auto: in the training process, and in workers), "
                              "each with its env.threads after a colon if wanted (0:8, auto:2)")
+    parser.add_argument("--splits", default="1",
+                        help="the group part's (and the targets' Hopper TD3 group's) seeds cut into this many groups "
+                             "trained at once, each a process on its share of the cores (1: one group; 1,2,4)")
     parser.add_argument("--parts", default="modes,sweep,group",
                         help="which parts to run: modes, sweep, group (the default: all three) and targets")
     parser.add_argument("--target-seeds", type=int, default=32, help="the targets' group size (default 32)")
@@ -358,20 +385,22 @@ def main() -> None:
                 print(f"| {jobs} | {'yes' if mps else 'no'} | {row['aggregate']:.0f} | {seeds} | "
                       f"{mib(row['mib_per_seed'])} | {row['wall_seconds']:.1f} |", flush=True)
     if "group" in args.parts:
-        print(f"\n{args.recipe or args.env}, seeds as one group (layered train --seeds K)\n\n"
-              "| K | learner.compile | env.workers[:threads] | aggregate steps/s | per seed steps/s | GPU MiB per seed "
-              "| wall s |\n|---|---|---|---|---|---|---|")
+        print(f"\n{args.recipe or args.env}, seeds as groups (layered train --seeds, one process per group)\n\n"
+              "| K | groups at once | learner.compile | env.workers[:threads] | aggregate steps/s | per seed steps/s "
+              "(each group's) | GPU MiB per seed | wall s |\n|---|---|---|---|---|---|---|---|")
         for k in map(int, args.groups.split(",")):
-            for mode in args.group_modes.split(","):
-                for workers in args.group_workers.split(","):
-                    try:
-                        row = group(args.device, k, args.recipe, args.env, args.hidden, args.steps,
-                                    args.warmup, every(args), mode, workers, args.set)
-                    except Failed as e:
-                        print(f"| {k} | {mode} | {workers} | failed: {e} | | | |", flush=True)
-                        continue
-                    print(f"| {k} | {mode} | {workers} | {row['aggregate']:.0f} | {row['per_seed']:.0f} | "
-                          f"{mib(row['mib_per_seed'])} | {row['wall_seconds']:.1f} |", flush=True)
+            for splits in (s for s in map(int, args.splits.split(",")) if s <= k):
+                for mode in args.group_modes.split(","):
+                    for workers in args.group_workers.split(","):
+                        try:
+                            row = group(args.device, k, args.recipe, args.env, args.hidden, args.steps,
+                                        args.warmup, every(args), mode, workers, args.set, splits)
+                        except Failed as e:
+                            print(f"| {k} | {splits} | {mode} | {workers} | failed: {e} | | | |", flush=True)
+                            continue
+                        print(f"| {k} | {splits} | {mode} | {workers} | {row['aggregate']:.0f} | "
+                              f"{', '.join(f'{r:.0f}' for r in row['per_seed'])} | {mib(row['mib_per_seed'])} | "
+                              f"{row['wall_seconds']:.1f} |", flush=True)
     if "targets" in args.parts:
         print_targets(args)
 
