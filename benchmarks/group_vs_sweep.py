@@ -4,11 +4,14 @@ For each K, both commands train the same seeds for `--steps` base steps per phas
 to one episode at the end of each phase; each is its own process tree, timed from start to end, and
 the two alternate `--repeats` times. The table gives aggregate environment steps per second (K x
 steps x phases / wall time, best of the repeats) and the peak memory per seed (the group's process
-divided by K; a sweep's largest worker).
+divided by K; a sweep's largest worker). With `--splits S`, a third way alternates with them: the K
+seeds cut into S groups trained at once, each `layered train --seeds` on one S-th of the cores (pinned
+with `taskset`, its torch threads as many), its memory per seed its largest process's over its seeds.
 
     python benchmarks/group_vs_sweep.py                                   # Pendulum TD3, K = 1, 4, 8, on CPU
     python benchmarks/group_vs_sweep.py --recipe recipes/pendulum/tla-c.toml --seeds 4
     python benchmarks/group_vs_sweep.py --seeds 8 --set learner.precision=bfloat16
+    python benchmarks/group_vs_sweep.py --seeds 8 --splits 2                   # and as 2 groups of 4 at once
     python benchmarks/group_vs_sweep.py --recipe recipes/hopper/td3-realtime.toml --device cuda --seeds 1,4,16,64
 """
 
@@ -16,6 +19,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -49,6 +54,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="the group's torch threads")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--splits", type=int, default=1, help="also the seeds as this many groups at once (2 or more)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a recipe setting for both sides, e.g. learner.precision=bfloat16 (repeatable)")
     args = parser.parse_args()
@@ -59,22 +65,45 @@ def main() -> None:
     print(f"{Path(args.recipe).parent.name}/{Path(args.recipe).stem}, {args.steps} steps x {phases} phases per seed, "
           f"device {args.device}{''.join(f', {x}' for x in args.set)}; group: {args.threads} threads; sweep: "
           f"--jobs {args.jobs}, 1 thread each\n")
-    print("| K | group, steps/s | sweep, steps/s | group / sweep | MiB per seed: group / sweep |")
-    print("|---|---|---|---|---|")
+    split = args.splits > 1
+    print(f"| K | group, steps/s | sweep, steps/s | group / sweep |{' groups at once, steps/s | / sweep |' * split}"
+          f" MiB per seed: group / sweep{' / groups at once' * split} |")
+    print(f"|---|---|---|---|{'---|---|' * split}---|")
     for k in (int(x) for x in args.seeds.split(",")):
-        best = {"group": (float("inf"), 0.0), "sweep": (float("inf"), 0.0)}
+        best = {name: (float("inf"), 0.0) for name in ("group", "sweep", "split")}
         for _ in range(args.repeats):
             with tempfile.TemporaryDirectory() as tmp:
                 group = [layered, "train", args.recipe, "--seeds", str(k), "--steps", str(args.steps), "--threads",
                          str(args.threads), "--out", f"{tmp}/group", *settings]
                 sweep = [layered, "sweep", args.recipe, "--seeds", str(k), "--jobs", str(min(args.jobs, k)),
                          "--steps", str(args.steps), "--out", f"{tmp}/sweep", *settings]
-                for name, command in (("group", group), ("sweep", sweep)):
+                ways = {"group": (group, k), "sweep": (sweep, 1)}
+                if split:
+                    ways["split"] = (["sh", "-c", groups_at_once(layered, args, k, settings, tmp)], k / args.splits)
+                for name, (command, per) in ways.items():
                     wall, rss = timed(command)
-                    best[name] = min(best[name], (wall, rss / (k if name == "group" else 1)))
+                    best[name] = min(best[name], (wall, rss / per))
         rate = {name: k * args.steps * phases / wall for name, (wall, _) in best.items()}
-        print(f"| {k} | {rate['group']:.0f} | {rate['sweep']:.0f} | {rate['group'] / rate['sweep']:.2f}x | "
-              f"{best['group'][1]:.0f} / {best['sweep'][1]:.0f} |", flush=True)
+        ratios = f" {rate['split']:.0f} | {rate['split'] / rate['sweep']:.2f}x |" if split else ""
+        memory = " / ".join(f"{best[name][1]:.0f}" for name in ("group", "sweep", "split")[: 2 + split])
+        print(f"| {k} | {rate['group']:.0f} | {rate['sweep']:.0f} | {rate['group'] / rate['sweep']:.2f}x |{ratios} "
+              f"{memory} |", flush=True)
+
+
+def groups_at_once(layered: str, args: argparse.Namespace, k: int, settings: list[str], tmp: str) -> str:
+    """A shell command that trains the K seeds as `args.splits` groups at once, each pinned to its share of the
+    cores with as many torch threads, and waits for them all (failing if one fails)."""
+    cores = sorted(os.sched_getaffinity(0))
+    lines = []
+    for j in range(args.splits):
+        seeds = range(k * j // args.splits, k * (j + 1) // args.splits)
+        share = cores[len(cores) * j // args.splits: len(cores) * (j + 1) // args.splits] or cores[:1]
+        command = ["taskset", "-c", ",".join(map(str, share)), layered, "train", args.recipe, "--seeds",
+                   f"{seeds[0]}-{seeds[-1]}", "--steps", str(args.steps), "--threads", str(len(share)), "--out",
+                   f"{tmp}/split{j}", *settings]
+        lines.append(f"{shlex.join(command)} & p{j}=$!")
+    waits = " && ".join(f"wait $p{j}" for j in range(args.splits))
+    return "; ".join(lines) + f"; {waits}"
 
 
 def _phases(recipe: str) -> int:
