@@ -160,7 +160,7 @@ def _parser() -> argparse.ArgumentParser:
     sw = sub.add_parser(
         "sweep", help="train every recipe with several seeds, in parallel processes",
         usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--out DIR] [--steps N] "
-        "[--vectorize] [--device {cpu,cuda,auto}] [--no-mps] [--backend {local,ray}] [--address ADDR] "
+        "[--vectorize [--group-size N]] [--device {cpu,cuda,auto}] [--no-mps] [--backend {local,ray}] [--address ADDR] "
         "[--plugin FILE.py|MODULE]",
         epilog="key=a,b,c trains a setup per value (several such keys: every combination), each in its own "
         "directory; finished runs are skipped and stopped ones resume; then: layered report DIR",
@@ -172,6 +172,10 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--steps", type=_positive, help="cap every training phase at N environment steps")
     sw.add_argument("--vectorize", action="store_true",
                     help="train the seeds of each setup as one group, in one process (as train --seeds)")
+    sw.add_argument("--group-size", type=_positive, metavar="N",
+                    help="with --vectorize: cut each setup's seeds into groups of N, each a process of its own "
+                    "(DIR/<setup>/seeds<a>-<b>/seed<k>), so that one setup's groups train at once on their shares "
+                    "of the cores, or of a GPU")
     sw.add_argument("--device", choices=["cpu", "cuda", "auto"],
                     help="where the learners run (learner.device); with cuda, the --jobs processes share the GPU, "
                     "under CUDA MPS (started for the sweep where it is installed and not running)")
@@ -502,7 +506,9 @@ def _sweep(args: argparse.Namespace) -> int:
     overrides += [f"learner.device={args.device}"] if args.device else []
     recipes = [a for a in args.recipes if "=" not in a]
     plugins = load_plugins(args.plugin)
-    jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins)
+    if args.group_size is not None and not args.vectorize:
+        return _fail("--group-size cuts a setup's seeds into groups: it needs --vectorize")
+    jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins, args.group_size)
     if args.vectorize:
         from layered.group import check_group
 

@@ -56,14 +56,16 @@ class Outcome:
 
 
 def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequence[str] = (),
-         max_steps: int | None = None, plugins: Sequence[str] = ()) -> list[Job]:
+         max_steps: int | None = None, plugins: Sequence[str] = (), group_size: int | None = None) -> list[Job]:
     """The jobs of a sweep; every recipe is validated first, so a bad one stops it before any run.
 
     An override `key=a,b,c` gives a setup per value (several such keys: per combination, see
     `overrides.grid`). Run directories are `out/<recipe folder>/<recipe name>[/<key=value,...>]/seed<k>`,
     with as many more of each recipe's parent folders as it takes to tell recipes of the same folder
-    and file name apart; a setup's label is the recipe's, then its `key=value`s. Jobs are ordered seed
-    by seed, so a sweep cut short still has every setup for its first seeds.
+    and file name apart; a setup's label is the recipe's, then its `key=value`s. With `group_size`, each
+    setup's seeds are cut into groups of that many (the last may hold fewer), seed k's run directory in
+    its group's folder, `.../seeds<a>-<b>/seed<k>`. Jobs are ordered seed by seed, so a sweep cut short
+    still has every setup for its first seeds.
     """
     paths = list(dict.fromkeys(recipe_path(source).resolve() for source in recipes))  # a recipe named twice runs once
     labels = recipe_labels(paths)
@@ -74,6 +76,9 @@ def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequen
             for chosen, named in setups:
                 recipe = load_recipe(path, [*chosen, f"train.seed={seed}"])
                 folder = out / labels[path] / ",".join(named).replace("/", "_") if named else out / labels[path]
+                if group_size is not None:
+                    first = seed - seed % group_size
+                    folder = folder / f"seeds{first}-{min(first + group_size, seeds) - 1}"
                 label = " ".join([labels[path], *named])
                 job = Job(resolved(recipe), folder / f"seed{seed}", label, max_steps, tuple(plugins))
                 _check_same_run(job)
@@ -151,9 +156,9 @@ def run_job(job: Job, threads: int = 1) -> Outcome:
 
 
 def run_group(jobs: Sequence[Job]) -> list[Outcome]:
-    """Train the seeds of one setup (the `jobs`, which differ in their seed alone) as one group in this
-    process (`layered.group`), on this worker's share of the cores as torch threads, its output going to the
-    setup folder's group.log. A group stopped by a signal, or killed, continues from its last checkpoint when
+    """Train the seeds of one group (the `jobs`, which differ in their seed alone and share a folder) as one
+    group in this process (`layered.group`), on this worker's share of the cores as torch threads, its output
+    going to that folder's group.log. A group stopped by a signal, or killed, continues from its last checkpoint when
     the same sweep runs again."""
     import torch
 
@@ -240,13 +245,14 @@ def on_gpu(jobs: Sequence[Job]) -> bool:
 
 
 def tasks(jobs: Sequence[Job], vectorize: bool) -> list[list[Job]]:
-    """What one process of a sweep trains at a time: a job, or with `vectorize` the seeds of one setup."""
+    """What one process of a sweep trains at a time: a job, or with `vectorize` a group: the seeds whose run
+    directories share a folder (a setup's, or one of its groups' where `plan` cut its seeds into groups)."""
     if not vectorize:
         return [[job] for job in jobs]
-    setups: dict[str, list[Job]] = {}
+    groups: dict[Path, list[Job]] = {}
     for job in jobs:
-        setups.setdefault(job.label, []).append(job)
-    return list(setups.values())
+        groups.setdefault(job.out.parent, []).append(job)
+    return list(groups.values())
 
 
 def process_count(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> int:
@@ -256,8 +262,8 @@ def process_count(jobs: Sequence[Job], workers: int, vectorize: bool = False) ->
 
 def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tuple[list[Outcome], SweepStop]:
     """Run the jobs in `workers` processes, showing progress over jobs; the outcomes, and the signals
-    that stopped the sweep (if any). With `vectorize`, the seeds of each setup train as one group
-    (`run_group`), one group per process, each process given its share of the cores for its
+    that stopped the sweep (if any). With `vectorize`, the seeds of each setup (or of each of its groups)
+    train as one group (`run_group`), one group per process, each process given its share of the cores for its
     environments' workers (`env.workers = "auto"`).
 
     Workers run in sessions of their own, so that a Ctrl-C at the terminal reaches the sweep alone,

@@ -122,6 +122,16 @@ def test_a_sweep_runs_a_process_per_run_or_per_setup_and_no_more_than_it_is_give
     assert [process_count(jobs, j, vectorize=True) for j in (1, 4)] == [1, 2]
 
 
+def test_a_setups_seeds_cut_into_groups_train_as_a_group_each():
+    out = Path("/sweep")
+    jobs = plan([PENDULUM / "td3.toml", PENDULUM / "tla-c.toml"], 5, out, group_size=2)
+    groups = [[job.out.relative_to(out).as_posix() for job in task] for task in tasks(jobs, vectorize=True)]
+    assert groups == [[f"pendulum/{r}/seeds{a}-{b}/seed{k}" for k in range(a, b + 1)]
+                      for a, b in ((0, 1), (2, 3), (4, 4)) for r in ("td3", "tla-c")]
+    assert [process_count(jobs, j, vectorize=True) for j in (2, 8)] == [2, 6]
+    assert {job.label for job in jobs} == {"pendulum/td3", "pendulum/tla-c"}  # reported as two setups
+
+
 def test_a_sweeps_worker_sizes_its_environments_workers_to_its_share_of_the_cores():
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(1, mp_context=context, initializer=_init_worker, initargs=(os.getpid(), None, 1)) as pool:
@@ -242,6 +252,14 @@ def test_a_vectorised_sweep_trains_each_setups_seeds_as_one_group(tmp_path):
     assert runs == [f"pendulum/td3/layers.fast.action_penalty={v}/seed{k}" for v in (0, 1) for k in (0, 1)]
     assert '"group": [\n    0,\n    1\n  ]' in (out / runs[0] / "run.json").read_text()
     assert sweep(*args).stdout.count("skipped") == 4
+    cut = sweep(PENDULUM / "td3.toml", *TINY, "--seeds", 3, "--jobs", 2, "--steps", 150, "--vectorize",
+                "--group-size", 2, "--out", tmp_path / "cut")
+    assert cut.returncode == 0, cut.stderr
+    runs = sorted(p.parent.relative_to(tmp_path / "cut").as_posix() for p in (tmp_path / "cut").rglob("results.json"))
+    assert runs == ["pendulum/td3/seeds0-1/seed0", "pendulum/td3/seeds0-1/seed1", "pendulum/td3/seeds2-2/seed2"]
+    assert '"group": [\n    2\n  ]' in (tmp_path / "cut" / runs[2] / "run.json").read_text()
+    alone = sweep(PENDULUM / "td3.toml", "--group-size", 2, "--out", tmp_path / "u")
+    assert alone.returncode == 2 and "needs --vectorize" in alone.stderr and not (tmp_path / "u").exists()
     examples = PENDULUM.parent.parent / "docs" / "examples"  # a plugin's learner, which no group stacks
     refused = sweep(examples / "pendulum-centre.toml", "--plugin", examples / "centre.py", "--vectorize", "--out",
                     tmp_path / "t")
