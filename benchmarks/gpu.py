@@ -74,9 +74,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import tomli_w
 from device_memory import DeviceMemory, mib
+from group_split import groups_at_once
 
 RECIPE: dict[str, Any] = {
     "env": {"id": "Pendulum-v1"},
@@ -171,15 +171,14 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
     (started where it can be); the aggregate is the sum of the groups'."""
     from layered.cuda_mps import shared_gpu
 
-    parts = [[int(s) for s in part] for part in np.array_split(np.arange(seeds), splits)]
-    shares = [set(map(int, share)) for share in np.array_split(sorted(os.sched_getaffinity(0)), splits)]
+    parts = groups_at_once(seeds, splits)
     with tempfile.TemporaryDirectory() as tmp:
         recipe = recipe or _td3_file(tmp, env, hidden, steps, warmup, every)
         logs = [Path(tmp) / f"group{j}.log" for j in range(splits)]
         start = time.perf_counter()
         with shared_gpu(splits if device == "cuda" else 1), DeviceMemory() as memory:
             processes = []
-            for part, share, log in zip(parts, shares, logs, strict=True):
+            for (part, share), log in zip(parts, logs, strict=True):
                 with log.open("w") as err:
                     processes.append(subprocess.Popen(
                         [sys.executable, "-m", "layered.cli", "train", recipe, "--seeds", f"{part[0]}-{part[-1]}",
@@ -195,7 +194,8 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
                 raise Failed(f"group of {seeds} failed: {_last_line(log.read_text())}")
         rates = [settled_rate(log.read_text()) for log in logs]
     total = memory.total()
-    return {"seeds": seeds, "per_seed": rates, "aggregate": sum(r * len(p) for r, p in zip(rates, parts, strict=True)),
+    return {"seeds": seeds, "per_seed": rates,
+            "aggregate": sum(rate * len(part) for rate, (part, _) in zip(rates, parts, strict=True)),
             "wall_seconds": wall, "mib_per_seed": None if total is None else total / seeds}
 
 

@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shlex
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+from group_split import groups_at_once
 
 ROOT = Path(__file__).resolve().parent.parent
 MEASURE = """
@@ -79,7 +80,7 @@ def main() -> None:
                          "--steps", str(args.steps), "--out", f"{tmp}/sweep", *settings]
                 ways = {"group": (group, k), "sweep": (sweep, 1)}
                 if split:
-                    ways["split"] = (["sh", "-c", groups_at_once(layered, args, k, settings, tmp)], k / args.splits)
+                    ways["split"] = (["sh", "-c", split_command(layered, args, k, settings, tmp)], k / args.splits)
                 for name, (command, per) in ways.items():
                     wall, rss = timed(command)
                     best[name] = min(best[name], (wall, rss / per))
@@ -90,14 +91,11 @@ def main() -> None:
               f"{memory} |", flush=True)
 
 
-def groups_at_once(layered: str, args: argparse.Namespace, k: int, settings: list[str], tmp: str) -> str:
+def split_command(layered: str, args: argparse.Namespace, k: int, settings: list[str], tmp: str) -> str:
     """A shell command that trains the K seeds as `args.splits` groups at once, each pinned to its share of the
     cores with as many torch threads, and waits for them all (failing if one fails)."""
-    cores = sorted(os.sched_getaffinity(0))
     lines = []
-    for j in range(args.splits):
-        seeds = range(k * j // args.splits, k * (j + 1) // args.splits)
-        share = cores[len(cores) * j // args.splits: len(cores) * (j + 1) // args.splits] or cores[:1]
+    for j, (seeds, share) in enumerate(groups_at_once(k, args.splits)):
         command = ["taskset", "-c", ",".join(map(str, share)), layered, "train", args.recipe, "--seeds",
                    f"{seeds[0]}-{seeds[-1]}", "--steps", str(args.steps), "--threads", str(len(share)), "--out",
                    f"{tmp}/split{j}", *settings]

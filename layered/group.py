@@ -526,11 +526,11 @@ def _read_back(losses: dict[str, PendingLosses], seeds: Sequence[Seed], step: in
         if not read:
             continue
         took = np.stack([masks["critic"] for _, masks in read])  # [updates, K]: the seeds each update stepped
-        absent = np.zeros(took.shape[1])
+        none, zeros = np.zeros_like(took[0]), np.zeros(took.shape[1], np.float32)  # (a loss an update lacks)
         columns = {}  # per loss: [updates, K] values, and whether the update computed them for the seed
         for n in TD3Group.loss_names:
-            computed = np.stack([masks.get(n, absent.astype(bool)) for _, masks in read]) & took
-            values = np.stack([update.get(n, absent) for update, _ in read])
+            computed = np.stack([masks.get(n, none) for _, masks in read]) & took
+            values = np.stack([update.get(n, zeros) for update, _ in read])
             _check_finite(values[computed], "loss", f"layer {name!r}", seeds[0].state.phase, step)
             columns[f"{n}_loss"] = (values, computed)
         for k, seed in enumerate(seeds):
