@@ -30,10 +30,12 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     from layered.buffer import Transition
+    from layered.heap import keep_freed_memory
     from layered.learners.td3 import TD3, TD3Config
     from layered.learners.td3_group import TD3Group
     from layered.outputs import OutputLayout
 
+    keep_freed_memory()  # as a group's process does (layered.group)
     obs_space = Box(-1.0, 1.0, (args.obs,), np.float32)
     act_space = Box(-1.0, 1.0, (args.act,), np.float32)
     config = TD3Config(buffer_size=2000, device=args.device)

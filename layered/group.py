@@ -49,6 +49,7 @@ from layered.group_state import (
     save_group,
     seed_dirs,
 )
+from layered.heap import keep_freed_memory
 from layered.interrupt import StopRequest, Stopped
 from layered.learner_set import build_learners, keep_start_weights, start_from_weights
 from layered.learners.choice_group import ChoiceLearnerGroup, GateTD3Group, TempoRLGroup
@@ -155,6 +156,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
         check_new_group(directory, outs)  # before anything is built or written
     for warning in warmup_warnings(recipes[0], max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
+    keep_freed_memory()  # a group's update frees and takes back blocks of MBs every step (layered.heap)
     singles = [build_learners(recipe) for recipe in recipes]
     if not resume:
         for recipe, learners in zip(recipes, singles, strict=True):
