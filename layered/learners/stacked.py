@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from torch.optim.adam import adam as adam_update
 
 from layered.buffer import put_rows, rows_since
 from layered.learners.graphed import GraphedStep
@@ -83,6 +82,11 @@ class StackedAdam:
         self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
         # one count per parameter and seed, as torch's Adam keeps one per parameter (fused Adam adds 1 to each)
         self._counts = torch.zeros((len(self.params), k), device=self.params[0].device)
+        # every seed's slice of each parameter, moment and count, cut once: they are written in place only, so the
+        # slices stay theirs (a gradient is a new tensor at every backward pass and is cut at each step)
+        with torch.no_grad():  # (as `step` cuts and writes them)
+            self._slices = [(p.unbind(0), m.unbind(0), v.unbind(0), c.unbind(0))
+                            for p, m, v, c in zip(self.params, self.exp_avg, self.exp_avg_sq, self._counts, strict=True)]
 
     @property
     def steps(self) -> torch.Tensor:
@@ -117,14 +121,20 @@ class StackedAdam:
             return
         every = len(seeds) == self._counts.shape[1]
         slices: list[list[torch.Tensor]] = [[], [], [], [], []]  # params, grads, moments, squared moments, counts
-        for j, (p, m, v) in enumerate(zip(self.params, self.exp_avg, self.exp_avg_sq, strict=True)):
+        for p, (p_slices, m_slices, v_slices, c_slices) in zip(self.params, self._slices, strict=True):
             assert p.grad is not None, "step follows a backward pass through every parameter"
-            for out, t in zip(slices, (p, p.grad, m, v, self._counts[j]), strict=True):
-                views = t.unbind(0)  # (every seed's slice at one call: a Python index per slice cost more than Adam)
+            g_slices = p.grad.unbind(0)  # (every seed's slice at one call: a Python index per slice cost more than Adam)
+            for out, views in zip(slices, (p_slices, g_slices, m_slices, v_slices, c_slices), strict=True):
                 out.extend(views if every else [views[k] for k in seeds])
         params, grads, exp_avg, exp_avg_sq, counts = slices
-        adam_update(params, grads, exp_avg, exp_avg_sq, [], counts, fused=True, amsgrad=False, beta1=self.beta1,
-                    beta2=self.beta2, lr=self.lr, weight_decay=0.0, eps=self.eps, maximize=False)
+        # the counts of the seeds stepped, one more each, as fused Adam's own step adds 1 to every count it is handed
+        # (here in one operation, not one per slice), then torch's fused Adam kernel itself on the slices
+        if every:
+            self._counts += 1
+        else:
+            self._counts[:, list(seeds)] += 1
+        torch._fused_adam_(params, grads, exp_avg, exp_avg_sq, [], counts, lr=self.lr, beta1=self.beta1,
+                           beta2=self.beta2, weight_decay=0.0, eps=self.eps, amsgrad=False, maximize=False)
 
     def state_dict(self) -> dict[str, Any]:
         """Every seed's moments and step count, for resuming a group: the tensors themselves, as a module's
@@ -132,7 +142,8 @@ class StackedAdam:
         return {"exp_avg": list(self.exp_avg), "exp_avg_sq": list(self.exp_avg_sq), "steps": self.steps}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore what `state_dict` returned (the learning rate stays the configuration's)."""
+        """Restore what `state_dict` returned (the learning rate stays the configuration's), in place: the slices
+        that `step` hands to Adam are views of these very tensors."""
         for mine, saved in ((self.exp_avg, state["exp_avg"]), (self.exp_avg_sq, state["exp_avg_sq"])):
             for t, value in zip(mine, saved, strict=True):
                 t.copy_(value)
