@@ -85,8 +85,8 @@ class StackedAdam:
         # every seed's slice of each parameter, moment and count, cut once: they are written in place only, so the
         # slices stay theirs (a gradient is a new tensor at every backward pass and is cut at each step)
         with torch.no_grad():  # (as `step` cuts and writes them)
-            self._slices = [(p.unbind(0), m.unbind(0), v.unbind(0), c.unbind(0))
-                            for p, m, v, c in zip(self.params, self.exp_avg, self.exp_avg_sq, self._counts, strict=True)]
+            self._slices = [(p.unbind(0), m.unbind(0), v.unbind(0), c.unbind(0)) for p, m, v, c
+                            in zip(self.params, self.exp_avg, self.exp_avg_sq, self._counts, strict=True)]
 
     @property
     def steps(self) -> torch.Tensor:
@@ -123,7 +123,7 @@ class StackedAdam:
         slices: list[list[torch.Tensor]] = [[], [], [], [], []]  # params, grads, moments, squared moments, counts
         for p, (p_slices, m_slices, v_slices, c_slices) in zip(self.params, self._slices, strict=True):
             assert p.grad is not None, "step follows a backward pass through every parameter"
-            g_slices = p.grad.unbind(0)  # (every seed's slice at one call: a Python index per slice cost more than Adam)
+            g_slices = p.grad.unbind(0)  # (every seed's slice at one call: a Python index each cost more than Adam)
             for out, views in zip(slices, (p_slices, g_slices, m_slices, v_slices, c_slices), strict=True):
                 out.extend(views if every else [views[k] for k in seeds])
         params, grads, exp_avg, exp_avg_sq, counts = slices
