@@ -132,14 +132,14 @@ def test_the_update_of_every_seed_is_the_masked_update_on_a_mask_of_every_seed_b
 
 def test_the_update_on_host_masks_computes_only_the_seeds_that_take_part():
     """Where the host knows which seeds update (a layer due in some rows), their networks alone are computed;
-    on device masks, every seed is."""
+    on device masks, every seed is (the actors' products batch the seeds, the critics' both twins of each)."""
     host, device = paired(TD3Config(hidden=(32, 16), batch_size=8, buffer_size=100, policy_delay=1))
     for group, seeds in ((host, 2), (device, 3)):
         group.update()
         with Dispatched() as seen:
             group.update(np.array([True, False, True]))
         products = [args[1].shape[0] for name, args, _ in seen.calls if name == "baddbmm"]
-        assert products and set(products) == {seeds}
+        assert products and set(products) == {seeds, 2 * seeds}
 
 
 def test_acting_through_a_graph_per_number_of_observations_gives_the_eager_actions():

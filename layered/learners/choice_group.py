@@ -68,9 +68,10 @@ class ChoiceGroup:
             pick(t, seeds) for t in self.replay.sample(self.td3.config.batch_size, self.td3.torch_rng))
         with torch.no_grad():
             pair = torch.cat([next_obs, self.td3.actions(next_obs, self.td3.actor_target, seeds)], dim=-1)
-            value = self.td3.q1_target(pair, seeds=seeds)
             if self.head == "min":
-                value = torch.min(value, self.td3.q2_target(pair, seeds=seeds))
+                value = self.td3.critic_target(pair, seeds=seeds).amin(dim=1)
+            else:
+                value = self.td3.critic_target(pair, seeds=seeds, first=True)
             target = reward + not_done * discount * value
         chosen = self.net(torch.cat([obs, action], dim=-1), seeds=seeds).gather(-1, choice.long())
         losses = (chosen - target).square().mean(dim=(1, 2))

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import copy
 import functools
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -17,52 +17,97 @@ from layered.learners.graphed import GraphedStep
 from layered.learners.staging import Staging
 
 
+def _stack(mlps: Sequence[nn.Sequential]) -> list[torch.Tensor]:
+    """The seeds' MLPs (one each, of one shape) layer by layer in an MLP's parameter order (weight, bias,
+    weight, bias ...): `[K, in, out]` weights and `[K, 1, out]` biases."""
+    layers = [[m for m in mlp if isinstance(m, nn.Linear)] for mlp in mlps]
+    stacked = []
+    for j in range(len(layers[0])):
+        stacked.append(torch.stack([seed[j].weight.detach().T for seed in layers]))
+        stacked.append(torch.stack([seed[j].bias.detach()[None] for seed in layers]))
+    return stacked
+
+
+def _apply(x: torch.Tensor, params: Sequence[torch.Tensor]) -> torch.Tensor:
+    """`x` through stacked linear layers (weight, bias, ...: one batched product each), ReLUs between them."""
+    last = len(params) // 2 - 1
+    for j, (weight, bias) in enumerate(zip(params[0::2], params[1::2], strict=True)):
+        x = torch.baddbmm(bias, x, weight)
+        x = torch.relu(x) if j < last else x
+    return x
+
+
+def _chosen(params: Iterable[torch.Tensor], frozen: bool, seeds: torch.Tensor | None) -> list[torch.Tensor]:
+    """Stacked parameters, only those of `seeds` (indices; all for None), detached from autograd if `frozen`."""
+    chosen = [t if seeds is None else t.index_select(0, seeds) for t in params]
+    return [t.detach() for t in chosen] if frozen else chosen
+
+
+def _name(prefix: str, j: int) -> str:
+    """The name an `nn.Sequential` of linear layers and ReLUs gives its j-th parameter."""
+    return f"{prefix}{j - j % 2}.{'weight' if j % 2 == 0 else 'bias'}"
+
+
 class StackedMLP(nn.Module):
     """K multilayer perceptrons of the same shape, one per seed, as `[K, in, out]` weights."""
 
     def __init__(self, mlps: Sequence[nn.Sequential]) -> None:
         super().__init__()
-        layers = [[m for m in mlp if isinstance(m, nn.Linear)] for mlp in mlps]
-        stacked = []
-        for j in range(len(layers[0])):  # weight, bias, weight, bias ...: the order of an MLP's parameters
-            stacked.append(nn.Parameter(torch.stack([seed[j].weight.detach().T for seed in layers]).contiguous()))
-            stacked.append(nn.Parameter(torch.stack([seed[j].bias.detach()[None] for seed in layers]).contiguous()))
-        self.stacked = nn.ParameterList(stacked)
+        self.stacked = nn.ParameterList(nn.Parameter(t.contiguous()) for t in _stack(mlps))
 
     @property
     def weights(self) -> list[torch.Tensor]:
         """Each layer's weights, [K, in, out]."""
         return list(self.stacked)[0::2]
 
-    @property
-    def biases(self) -> list[torch.Tensor]:
-        """Each layer's biases, [K, 1, out]."""
-        return list(self.stacked)[1::2]
-
     def forward(self, x: torch.Tensor, frozen: bool = False, seeds: torch.Tensor | None = None) -> torch.Tensor:
         """`x`: [K, batch, in] -> [K, batch, out], or with `seeds` (indices) only those seeds' networks, `x`
         being [len(seeds), batch, in]; with `frozen`, the weights take no gradient."""
-        last = len(self.stacked) // 2 - 1
-        for j, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
-            if seeds is not None:
-                weight, bias = weight.index_select(0, seeds), bias.index_select(0, seeds)
-            if frozen:
-                weight, bias = weight.detach(), bias.detach()
-            x = torch.baddbmm(bias, x, weight)
-            x = torch.relu(x) if j < last else x
-        return x
+        return _apply(x, _chosen(self.stacked, frozen, seeds))
 
     def seed_state(self, k: int, prefix: str) -> dict[str, torch.Tensor]:
         """Seed k's weights under the names an `nn.Sequential` of linear layers and ReLUs gives them."""
-        return {f"{prefix}{j - j % 2}.{'weight' if j % 2 == 0 else 'bias'}": _unstack(t, k, j)
-                for j, t in enumerate(self.stacked)}
+        return {_name(prefix, j): _unstack(t, k, j) for j, t in enumerate(self.stacked)}
 
     @torch.no_grad()
     def load_seed_state(self, k: int, state: dict[str, torch.Tensor], prefix: str) -> None:
         """Set seed k's weights from what `seed_state` names them."""
         for j, t in enumerate(self.stacked):
-            t[k] = _restack(state[f"{prefix}{j - j % 2}.{'weight' if j % 2 == 0 else 'bias'}"], j)
+            t[k] = _restack(state[_name(prefix, j)], j)
 
+
+class TwinMLP(nn.Module):
+    """K seeds' pairs of multilayer perceptrons of one shape (TD3's two critics) as `[K, 2, in, out]` weights:
+    a seed's two networks computed on one input together, one batched product per layer for every seed and
+    twin (half the operations of two stacks, each seed's numbers as the two stacks give them)."""
+
+    def __init__(self, firsts: Sequence[nn.Sequential], seconds: Sequence[nn.Sequential]) -> None:
+        super().__init__()
+        self.stacked = nn.ParameterList(nn.Parameter(torch.stack([a, b], dim=1).contiguous())
+                                        for a, b in zip(_stack(firsts), _stack(seconds), strict=True))
+
+    def forward(self, x: torch.Tensor, frozen: bool = False, seeds: torch.Tensor | None = None,
+                first: bool = False) -> torch.Tensor:
+        """`x`: [K, batch, in] -> both twins' outputs, [K, 2, batch, out]; with `first` the first twin's alone,
+        [K, batch, out]. `seeds` and `frozen` as `StackedMLP`'s."""
+        params = _chosen(self.stacked, frozen, seeds)
+        if first:
+            return _apply(x, [t[:, 0] for t in params])
+        k = x.shape[0]
+        both = _apply(x.unsqueeze(1).expand(k, 2, *x.shape[1:]).flatten(0, 1), [t.flatten(0, 1) for t in params])
+        return both.unflatten(0, (k, 2))
+
+    def seed_state(self, k: int, prefixes: tuple[str, str]) -> dict[str, torch.Tensor]:
+        """Seed k's two networks under the names two `nn.Sequential`s under `prefixes` give them."""
+        return {_name(prefix, j): _unstack(t[:, i], k, j)
+                for i, prefix in enumerate(prefixes) for j, t in enumerate(self.stacked)}
+
+    @torch.no_grad()
+    def load_seed_state(self, k: int, state: dict[str, torch.Tensor], prefixes: tuple[str, str]) -> None:
+        """Set seed k's two networks from what `seed_state` names them."""
+        for i, prefix in enumerate(prefixes):
+            for j, t in enumerate(self.stacked):
+                t[k, i] = _restack(state[_name(prefix, j)], j)
 
 
 class StackedAdam:
@@ -71,9 +116,13 @@ class StackedAdam:
     torch's fused Adam as a tensor of its own, with its own count, so that one call steps the chosen
     seeds with the arithmetic of a single network's (fused) Adam."""
 
-    def __init__(self, params: Sequence[torch.Tensor], lr: float, k: int, template: dict[str, Any]) -> None:
-        """`template`: a single network's Adam `state_dict`, whose `param_groups` a seed's state takes."""
+    def __init__(self, params: Sequence[torch.Tensor], lr: float, k: int, template: dict[str, Any],
+                 twins: bool = False) -> None:
+        """`template`: a single network's Adam `state_dict`, whose `param_groups` a seed's state takes. `twins`:
+        the parameters are a `TwinMLP`'s, `[K, 2, ...]`, which a single network's Adam holds as the first twin's
+        parameters, then the second's."""
         self.params = list(params)
+        self.twins = twins
         self.lr = lr
         self.beta1, self.beta2 = template["param_groups"][0]["betas"]
         self.eps = template["param_groups"][0]["eps"]
@@ -154,20 +203,27 @@ class StackedAdam:
         state = {}
         if float(self.steps[k]):  # a seed never stepped has no moments, as a new Adam has none
             step = self.steps[k].detach().cpu()
-            state = {index: {"step": step.clone(), "exp_avg": _unstack(m, k, index),
-                             "exp_avg_sq": _unstack(v, k, index)}
-                     for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True))}
+            state = {index: {"step": step.clone(), "exp_avg": _unstack(m, k, j), "exp_avg_sq": _unstack(v, k, j)}
+                     for index, j, m, v in self._singles()}
         return {"state": state, "param_groups": copy.deepcopy(self.param_groups)}
 
     def load_seed_state(self, k: int, state: dict[str, Any]) -> None:
         """Set seed k's part from a single network's Adam `state_dict`."""
         self._counts[:, k] = 0.0
-        for index, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True)):
+        for index, j, m, v in self._singles():
             moments = state["state"].get(index)
-            m[k], v[k] = (0.0, 0.0) if moments is None else (_restack(moments["exp_avg"], index),
-                                                              _restack(moments["exp_avg_sq"], index))
+            m[k], v[k] = (0.0, 0.0) if moments is None else (_restack(moments["exp_avg"], j),
+                                                              _restack(moments["exp_avg_sq"], j))
             if moments is not None:
-                self._counts[index, k] = float(moments["step"])
+                self._counts[j, k] = float(moments["step"])
+
+    def _singles(self) -> Iterator[tuple[int, int, torch.Tensor, torch.Tensor]]:
+        """For each parameter of a single network's Adam: its index there, the index j of the stacked parameter
+        holding it, and that parameter's moments as [K, ...] (a twin's view of them for `twins`)."""
+        n = len(self.params)
+        for i in range(2 if self.twins else 1):
+            for j, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True)):
+                yield (i * n + j, j, m[:, i], v[:, i]) if self.twins else (j, j, m, v)
 
 
 def _unstack(t: torch.Tensor, k: int, index: int) -> torch.Tensor:

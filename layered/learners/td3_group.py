@@ -1,9 +1,10 @@
 """TD3 for K seeds as one computation: the groundwork of training many seeds of a recipe in one process.
 
 Each seed's networks are the very ones a single `TD3` learner of that seed starts with, stacked along
-a leading seed axis: every linear layer is one `[K, in, out]` weight, applied to the K seeds'
-minibatches with one batched matrix product. The K seeds' losses are summed, so that one backward
-pass and one Adam step (elementwise) update each seed exactly as its own loss asks; seeds never mix.
+a leading seed axis: every linear layer is one `[K, in, out]` weight (both critics' one `[K, 2, in, out]`),
+applied to the K seeds' minibatches with one batched matrix product. The K seeds' losses are summed, so
+that one backward pass and one Adam step (elementwise) update each seed exactly as its own loss asks;
+seeds never mix.
 The replay buffers are one `[K, capacity, row]` tensor, sampled per seed in one gather. Acting takes
 one observation per seed, `[K, obs]`, and returns `[K, action]`.
 
@@ -23,7 +24,7 @@ import torch
 
 from layered.learners.graphed import GraphedStep
 from layered.learners.precision import autocast, loaded_precision, update_region
-from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, follow, masked
+from layered.learners.stacked import StackedAdam, StackedMLP, StackedReplay, TwinMLP, follow, masked
 from layered.learners.staging import Staging
 from layered.learners.td3 import TD3, TD3Config, squash
 
@@ -82,20 +83,19 @@ class TD3Group:
         self.precision = first.precision
         self.action_space = first.action_space
         self.actor = StackedMLP([learner.actor.net for learner in learners]).to(self.device)
-        self.q1 = StackedMLP([learner.critic.q1 for learner in learners]).to(self.device)
-        self.q2 = StackedMLP([learner.critic.q2 for learner in learners]).to(self.device)
+        self.critic = TwinMLP([learner.critic.q1 for learner in learners],
+                              [learner.critic.q2 for learner in learners]).to(self.device)
         self.actor_target = StackedMLP([learner.actor_target.net for learner in learners]).to(self.device)
-        self.q1_target = StackedMLP([learner.critic_target.q1 for learner in learners]).to(self.device)
-        self.q2_target = StackedMLP([learner.critic_target.q2 for learner in learners]).to(self.device)
-        for target in (self.actor_target, self.q1_target, self.q2_target):
+        self.critic_target = TwinMLP([learner.critic_target.q1 for learner in learners],
+                                     [learner.critic_target.q2 for learner in learners]).to(self.device)
+        for target in (self.actor_target, self.critic_target):
             target.requires_grad_(False)
         self.actor_opt = StackedAdam(list(self.actor.parameters()), self.config.lr, self.k,
                                      first.actor_opt.state_dict())
-        self.critic_opt = StackedAdam([*self.q1.parameters(), *self.q2.parameters()], self.config.lr, self.k,
-                                      first.critic_opt.state_dict())
+        self.critic_opt = StackedAdam(list(self.critic.parameters()), self.config.lr, self.k,
+                                      first.critic_opt.state_dict(), twins=True)
         Pair = tuple[list[torch.Tensor], list[torch.Tensor]]  # (targets, their sources)
-        self._critic_pairs: Pair = ([*self.q1_target.parameters(), *self.q2_target.parameters()],
-                              [*self.q1.parameters(), *self.q2.parameters()])
+        self._critic_pairs: Pair = (list(self.critic_target.parameters()), list(self.critic.parameters()))
         self._actor_pair: Pair = (list(self.actor_target.parameters()), list(self.actor.parameters()))
         self.centre, self.scale = first.actor.centre.to(self.device), first.actor.scale.to(self.device)
         self._low, self._high = first._low, first._high
@@ -244,12 +244,10 @@ class TD3Group:
             next_action = (self.actions(next_obs, self.actor_target, seeds) + noise * self.scale
                            ).clamp(self._low, self._high)
             pair = torch.cat([next_obs, next_action], dim=-1)
-            target = reward + not_done * discount * torch.min(self.q1_target(pair, seeds=seeds),
-                                                              self.q2_target(pair, seeds=seeds))
-        with self._precision():
-            pair = torch.cat([obs, action], dim=-1)
-            losses = ((self.q1(pair, seeds=seeds) - target).float().square().mean(dim=(1, 2))
-                      + (self.q2(pair, seeds=seeds) - target).float().square().mean(dim=(1, 2)))
+            target = reward + not_done * discount * self.critic_target(pair, seeds=seeds).amin(dim=1)
+        with self._precision():  # (each seed's loss: its two critics' mean squared errors, summed)
+            errors = self.critic(torch.cat([obs, action], dim=-1), seeds=seeds) - target.unsqueeze(1)
+            losses = errors.float().square().mean(dim=(2, 3)).sum(dim=1)
         self.critic_opt.zero_grad()
         losses.sum().backward()
         self.critic_opt.step(rows, everyone)
@@ -262,7 +260,8 @@ class TD3Group:
         seeds = self.subset(rows)
         obs = pick(obs, seeds)
         with self._precision():
-            q1 = self.q1(torch.cat([obs, self.actions(obs, self.actor, seeds)], dim=-1), frozen=True, seeds=seeds)
+            q1 = self.critic(torch.cat([obs, self.actions(obs, self.actor, seeds)], dim=-1), frozen=True, seeds=seeds,
+                             first=True)
             losses = -q1.float().mean(dim=(1, 2))
         self.actor_opt.zero_grad()
         losses.sum().backward()
@@ -283,7 +282,9 @@ class TD3Group:
         """[K] values from those of `seeds` (0 for the others)."""
         return values if seeds is None else torch.zeros(self.k, device=self.device).index_copy_(0, seeds, values)
 
-    NETS = ("actor", "q1", "q2", "actor_target", "q1_target", "q2_target")
+    TWINS = ("q1.", "q2.")  # where a single TD3's critic keeps its two networks
+
+    NETS = ("actor", "critic", "actor_target", "critic_target")
 
     @property
     def replays(self) -> dict[str, StackedReplay]:
@@ -320,9 +321,9 @@ class TD3Group:
         actor = {"centre": self.centre.clone(), "scale": self.scale.clone()}
         return {
             "actor": {**self.actor.seed_state(k, "net."), **actor},
-            "critic": {**self.q1.seed_state(k, "q1."), **self.q2.seed_state(k, "q2.")},
+            "critic": self.critic.seed_state(k, self.TWINS),
             "actor_target": {**self.actor_target.seed_state(k, "net."), **actor},
-            "critic_target": {**self.q1_target.seed_state(k, "q1."), **self.q2_target.seed_state(k, "q2.")},
+            "critic_target": self.critic_target.seed_state(k, self.TWINS),
             "actor_opt": self.actor_opt.seed_state(k), "critic_opt": self.critic_opt.seed_state(k),
             "updates": int(self.updates[k]), "torch_rng": self.torch_rng.get_state(), "precision": self.precision,
         }
@@ -331,9 +332,8 @@ class TD3Group:
         """Set seed k from a single `TD3` learner's `state_dict` (the group's generators stay as they are)."""
         self.actor.load_seed_state(k, state["actor"], "net.")
         self.actor_target.load_seed_state(k, state["actor_target"], "net.")
-        for net, target, name in ((self.q1, self.q1_target, "q1."), (self.q2, self.q2_target, "q2.")):
-            net.load_seed_state(k, state["critic"], name)
-            target.load_seed_state(k, state["critic_target"], name)
+        self.critic.load_seed_state(k, state["critic"], self.TWINS)
+        self.critic_target.load_seed_state(k, state["critic_target"], self.TWINS)
         self.actor_opt.load_seed_state(k, state["actor_opt"])
         self.critic_opt.load_seed_state(k, state["critic_opt"])
         self.updates[k] = int(state["updates"])

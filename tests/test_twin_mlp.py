@@ -1,0 +1,79 @@
+"""TD3's two critics of K seeds as one stack: each seed's twins compute what its own two networks do."""
+
+import pytest
+import torch
+
+from layered.learners.stacked import StackedAdam, StackedMLP, TwinMLP
+from layered.learners.td3 import mlp
+
+K, BATCH, SIZES = 3, 5, (4, 8, 6, 1)
+
+
+def critics(seed):
+    """K seeds' first and second critics, each an ordinary MLP."""
+    torch.manual_seed(seed)
+    return [mlp(SIZES) for _ in range(K)], [mlp(SIZES) for _ in range(K)]
+
+
+def test_each_seeds_twins_compute_its_own_two_networks():
+    firsts, seconds = critics(0)
+    twin = TwinMLP(firsts, seconds)
+    x = torch.randn(K, BATCH, SIZES[0])
+    both = twin(x)
+    assert both.shape == (K, 2, BATCH, 1)
+    for k in range(K):
+        torch.testing.assert_close(both[k, 0], firsts[k](x[k]), rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(both[k, 1], seconds[k](x[k]), rtol=1e-5, atol=1e-6)
+    # as two stacks of one network per seed compute them, bit for bit; `first` alone the first stack's
+    assert torch.equal(both[:, 0], StackedMLP(firsts)(x)) and torch.equal(both[:, 1], StackedMLP(seconds)(x))
+    assert torch.equal(twin(x, first=True), both[:, 0])
+
+
+def test_chosen_seeds_compute_alone_and_frozen_twins_take_no_gradient():
+    twin = TwinMLP(*critics(1))
+    x = torch.randn(K, BATCH, SIZES[0])
+    seeds = torch.tensor([2, 0])
+    assert torch.equal(twin(x[seeds], seeds=seeds), twin(x)[seeds])
+    frozen = twin(x.requires_grad_(), frozen=True, first=True).sum()
+    frozen.backward()
+    assert x.grad is not None and all(p.grad is None for p in twin.parameters())
+
+
+def test_a_seeds_twins_are_a_critics_state_and_load_back_into_any_seed():
+    firsts, seconds = critics(2)
+    twin = TwinMLP(firsts, seconds)
+    state = twin.seed_state(1, ("q1.", "q2."))
+    expected = {f"q1.{key}": value for key, value in firsts[1].state_dict().items()}
+    expected |= {f"q2.{key}": value for key, value in seconds[1].state_dict().items()}
+    assert state.keys() == expected.keys()
+    for key, value in expected.items():
+        assert torch.equal(state[key], value)
+    other = TwinMLP(*critics(3))
+    other.load_seed_state(0, state, ("q1.", "q2."))
+    x = torch.randn(1, BATCH, SIZES[0])
+    assert torch.equal(other(x.expand(K, -1, -1))[0], twin(x.expand(K, -1, -1))[1])
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_twin_adam_keeps_a_seeds_moments_as_one_adam_of_both_networks_does(seed):
+    """A seed's moments and counts in a single network's layout: the first twin's parameters, then the second's."""
+    firsts, seconds = critics(4)
+    twin = TwinMLP(firsts, seconds)
+    single = [*firsts[seed].parameters(), *seconds[seed].parameters()]
+    reference = torch.optim.Adam(single, lr=1e-3, fused=True)
+    adam = StackedAdam(list(twin.parameters()), 1e-3, K, reference.state_dict(), twins=True)
+    x = torch.randn(K, BATCH, SIZES[0])
+    twin(x).square().sum().backward()
+    (firsts[seed](x[seed]).square().sum() + seconds[seed](x[seed]).square().sum()).backward()
+    adam.step(torch.ones(K, dtype=torch.bool).numpy())
+    reference.step()
+    state, expected = adam.seed_state(seed)["state"], reference.state_dict()["state"]
+    assert state.keys() == expected.keys() == set(range(len(single)))
+    for index, moments in expected.items():
+        assert float(state[index]["step"]) == float(moments["step"]) == 1.0
+        for key in ("exp_avg", "exp_avg_sq"):
+            torch.testing.assert_close(state[index][key], moments[key], rtol=1e-5, atol=1e-7)
+    fresh = StackedAdam(list(TwinMLP(*critics(5)).parameters()), 1e-3, K, reference.state_dict(), twins=True)
+    fresh.load_seed_state(1, adam.seed_state(seed))
+    for index, moments in fresh.seed_state(1)["state"].items():
+        assert torch.equal(moments["exp_avg"], state[index]["exp_avg"])
