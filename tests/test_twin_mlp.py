@@ -77,3 +77,27 @@ def test_twin_adam_keeps_a_seeds_moments_as_one_adam_of_both_networks_does(seed)
     fresh.load_seed_state(1, adam.seed_state(seed))
     for index, moments in fresh.seed_state(1)["state"].items():
         assert torch.equal(moments["exp_avg"], state[index]["exp_avg"])
+
+
+def test_twin_adam_steps_each_twin_as_the_adam_of_two_stacks_does_bit_for_bit():
+    """Each twin is a tensor of its own to fused Adam, as each network of two stacks is: the kernel rounds a
+    tensor's tail apart from its whole vectors, so handing it both twins as one tensor would round otherwise."""
+    torch.manual_seed(6)
+    sizes = (4, 20, 12, 1)  # (widths whose twins together cross a vector's length where one alone does not)
+    firsts, seconds = [mlp(sizes) for _ in range(K)], [mlp(sizes) for _ in range(K)]
+    twin, one, two = TwinMLP(firsts, seconds), StackedMLP(firsts), StackedMLP(seconds)
+    template = torch.optim.Adam(mlp(sizes).parameters(), lr=1e-3).state_dict()
+    twin_adam = StackedAdam(list(twin.parameters()), 1e-3, K, template, twins=True)
+    stacks_adam = StackedAdam([*one.parameters(), *two.parameters()], 1e-3, K, template)
+    rows = torch.tensor([True, False, True]).numpy()
+    for _ in range(3):
+        for p, q, r in zip(twin.parameters(), one.parameters(), two.parameters(), strict=True):
+            grad = torch.randn_like(p) * 1e-3
+            p.grad, q.grad, r.grad = grad.clone(), grad[:, 0].clone(), grad[:, 1].clone()
+        twin_adam.step(rows)
+        stacks_adam.step(rows)
+    n = len(twin_adam.params)
+    for mine, theirs in ((twin_adam.params, stacks_adam.params), (twin_adam.exp_avg, stacks_adam.exp_avg),
+                         (twin_adam.exp_avg_sq, stacks_adam.exp_avg_sq)):
+        for j, t in enumerate(mine):
+            assert torch.equal(t[:, 0], theirs[j]) and torch.equal(t[:, 1], theirs[n + j])

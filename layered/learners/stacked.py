@@ -112,9 +112,10 @@ class TwinMLP(nn.Module):
 
 class StackedAdam:
     """Adam over stacked `[K, ...]` parameters with a step count per seed: a seed left out of an update
-    keeps its parameters, moments and count exactly. Each seed's slice of each parameter is handed to
-    torch's fused Adam as a tensor of its own, with its own count, so that one call steps the chosen
-    seeds with the arithmetic of a single network's (fused) Adam."""
+    keeps its parameters, moments and count exactly. Each seed's slice of each parameter (each twin's, for a
+    `TwinMLP`'s) is handed to torch's fused Adam as a tensor of its own, with its own count, so that one call
+    steps the chosen seeds with the arithmetic of a single network's (fused) Adam, bit for bit (the kernel
+    computes a tensor's tail apart from its whole vectors, so the cut into tensors decides the rounding)."""
 
     def __init__(self, params: Sequence[torch.Tensor], lr: float, k: int, template: dict[str, Any],
                  twins: bool = False) -> None:
@@ -131,11 +132,21 @@ class StackedAdam:
         self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
         # one count per parameter and seed, as torch's Adam keeps one per parameter (fused Adam adds 1 to each)
         self._counts = torch.zeros((len(self.params), k), device=self.params[0].device)
-        # every seed's slice of each parameter, moment and count, cut once: they are written in place only, so the
-        # slices stay theirs (a gradient is a new tensor at every backward pass and is cut at each step)
+        # every seed's slices of each parameter, moment and count (seed by seed, a twin's after the other's), cut
+        # once: they are written in place only, so the slices stay theirs (a gradient is a new tensor at every
+        # backward pass and is cut at each step)
+        self._nets = 2 if twins else 1  # slices per seed
         with torch.no_grad():  # (as `step` cuts and writes them)
-            self._slices = [(p.unbind(0), m.unbind(0), v.unbind(0), c.unbind(0)) for p, m, v, c
+            self._slices = [(self._cut(p), self._cut(m), self._cut(v), self._counts_cut(c)) for p, m, v, c
                             in zip(self.params, self.exp_avg, self.exp_avg_sq, self._counts, strict=True)]
+
+    def _cut(self, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """A stacked tensor's slices: a seed's, or each twin's of a seed, in turn."""
+        return t.flatten(0, 1).unbind(0) if self.twins else t.unbind(0)
+
+    def _counts_cut(self, counts: torch.Tensor) -> list[torch.Tensor]:
+        """A parameter's [K] counts as its slices' counts: a seed's twins share the seed's."""
+        return [n for n in counts.unbind(0) for _ in range(self._nets)]
 
     @property
     def steps(self) -> torch.Tensor:
@@ -169,12 +180,13 @@ class StackedAdam:
         if not seeds:
             return
         every = len(seeds) == self._counts.shape[1]
+        chosen = [k * self._nets + i for k in seeds for i in range(self._nets)]
         slices: list[list[torch.Tensor]] = [[], [], [], [], []]  # params, grads, moments, squared moments, counts
         for p, (p_slices, m_slices, v_slices, c_slices) in zip(self.params, self._slices, strict=True):
             assert p.grad is not None, "step follows a backward pass through every parameter"
-            g_slices = p.grad.unbind(0)  # (every seed's slice at one call: a Python index each cost more than Adam)
+            g_slices = self._cut(p.grad)  # (every seed's slice at one call: a Python index each cost more than Adam)
             for out, views in zip(slices, (p_slices, g_slices, m_slices, v_slices, c_slices), strict=True):
-                out.extend(views if every else [views[k] for k in seeds])
+                out.extend(views if every else [views[j] for j in chosen])
         params, grads, exp_avg, exp_avg_sq, counts = slices
         # the counts of the seeds stepped, one more each, as fused Adam's own step adds 1 to every count it is handed
         # (here in one operation, not one per slice), then torch's fused Adam kernel itself on the slices
