@@ -101,3 +101,39 @@ def test_twin_adam_steps_each_twin_as_the_adam_of_two_stacks_does_bit_for_bit():
                          (twin_adam.exp_avg_sq, stacks_adam.exp_avg_sq)):
         for j, t in enumerate(mine):
             assert torch.equal(t[:, 0], theirs[j]) and torch.equal(t[:, 1], theirs[n + j])
+
+
+def test_a_group_whose_critics_were_two_stacks_resumes_as_the_twins():
+    """A group checkpoint of before the twins (`q1`, `q2` and their targets; Adam's moments the first's, then the
+    second's) loads into the one stack and goes on as the group it was taken from."""
+    import numpy as np
+    from gymnasium.spaces import Box
+
+    from layered.learners.td3 import TD3, TD3Config
+    from layered.learners.td3_group import TD3Group
+    from layered.outputs import OutputLayout
+
+    obs, act, config = Box(-1.0, 1.0, (3,), np.float32), Box(-1.0, 1.0, (1,), np.float32), TD3Config(
+        hidden=(12, 20), batch_size=8, buffer_size=50)
+    groups = [TD3Group([TD3(obs, act, OutputLayout(1), config, seed) for seed in (0, 1)]) for _ in range(2)]
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        o = rng.uniform(-1, 1, (2, 3)).astype(np.float32)
+        for group in groups:
+            group.observe(o, o[:, :1], np.ones(2), o, np.zeros(2, bool), np.full(2, 0.99))
+    for _ in range(3):
+        groups[0].update()
+    state = groups[0].resume_state()
+    nets = {name: net for name, net in state["nets"].items() if "critic" not in name}
+    for twins, names in (("critic", ("q1", "q2")), ("critic_target", ("q1_target", "q2_target"))):
+        for i, name in enumerate(names):
+            nets[name] = {key: t[:, i].clone() for key, t in state["nets"][twins].items()}
+    opt = state["critic_opt"]
+    old = {**state, "nets": nets, "critic_opt": {**opt, **{key: [t[:, i].clone() for i in (0, 1) for t in opt[key]]
+                                                            for key in ("exp_avg", "exp_avg_sq")}}}
+    groups[1].load_resume_state(old)
+    losses = [group.update()["critic"][0] for group in groups]
+    assert torch.equal(*losses)
+    for a, b in zip(groups[0].critic_opt.exp_avg_sq + list(groups[0].critic.parameters()),
+                    groups[1].critic_opt.exp_avg_sq + list(groups[1].critic.parameters()), strict=True):
+        assert torch.equal(a, b)

@@ -139,6 +139,8 @@ class StackedAdam:
         with torch.no_grad():  # (as `step` cuts and writes them)
             self._slices = [(self._cut(p), self._cut(m), self._cut(v), self._counts_cut(c)) for p, m, v, c
                             in zip(self.params, self.exp_avg, self.exp_avg_sq, self._counts, strict=True)]
+        # and every seed's slices of all parameters, moments and counts in one list each (an update of every seed)
+        self._every = [[view for views in part for view in views] for part in zip(*self._slices, strict=True)]
 
     def _cut(self, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """A stacked tensor's slices: a seed's, or each twin's of a seed, in turn."""
@@ -180,14 +182,18 @@ class StackedAdam:
         if not seeds:
             return
         every = len(seeds) == self._counts.shape[1]
-        chosen = [k * self._nets + i for k in seeds for i in range(self._nets)]
-        slices: list[list[torch.Tensor]] = [[], [], [], [], []]  # params, grads, moments, squared moments, counts
-        for p, (p_slices, m_slices, v_slices, c_slices) in zip(self.params, self._slices, strict=True):
+        cuts = []  # each gradient's slices (a cut each: a Python index each cost more than Adam)
+        for p in self.params:
             assert p.grad is not None, "step follows a backward pass through every parameter"
-            g_slices = self._cut(p.grad)  # (every seed's slice at one call: a Python index each cost more than Adam)
-            for out, views in zip(slices, (p_slices, g_slices, m_slices, v_slices, c_slices), strict=True):
-                out.extend(views if every else [views[j] for j in chosen])
-        params, grads, exp_avg, exp_avg_sq, counts = slices
+            cuts.append(self._cut(p.grad))
+        if every:  # (the slices of every seed in one list, made once: only the gradients' are new)
+            params, exp_avg, exp_avg_sq, counts = self._every
+            grads = [g for cut in cuts for g in cut]
+        else:
+            chosen = [k * self._nets + i for k in seeds for i in range(self._nets)]
+            params, exp_avg, exp_avg_sq, counts = ([views[j] for views in part for j in chosen]
+                                                   for part in zip(*self._slices, strict=True))
+            grads = [cut[j] for cut in cuts for j in chosen]
         # the counts of the seeds stepped, one more each, as fused Adam's own step adds 1 to every count it is handed
         # (here in one operation, not one per slice), then torch's fused Adam kernel itself on the slices
         if every:

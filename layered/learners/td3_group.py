@@ -64,6 +64,20 @@ GroupLosses = dict[str, tuple[torch.Tensor, np.ndarray]]
 mask of the seeds whose update computed it (the others' values are meaningless)."""
 
 
+def twinned(state: dict[str, Any]) -> dict[str, Any]:
+    """A group's `resume_state` written when its critics were two stacks (`q1`, `q2` and their targets, Adam's
+    moments the first's then the second's), as the one stack of twins holds it, so that such a group resumes."""
+    nets = {name: net for name, net in state["nets"].items() if name[:2] not in ("q1", "q2")}
+    for name, first, second in (("critic", "q1", "q2"), ("critic_target", "q1_target", "q2_target")):
+        a, b = state["nets"][first], state["nets"][second]
+        nets[name] = {key: torch.stack([a[key], b[key]], dim=1) for key in a}
+    opt = state["critic_opt"]
+    n = len(opt["exp_avg"]) // 2
+    critic_opt = {**opt, **{key: [torch.stack([m, opt[key][n + j]], dim=1) for j, m in enumerate(opt[key][:n])]
+                            for key in ("exp_avg", "exp_avg_sq")}}
+    return {**state, "nets": nets, "critic_opt": critic_opt}
+
+
 class TD3Group:
     """K TD3 learners of one configuration, one per seed, updated together."""
 
@@ -300,7 +314,8 @@ class TD3Group:
                 "rng": self.rng.bit_generator.state, "precision": self.precision}
 
     def load_resume_state(self, state: dict[str, Any]) -> None:
-        """Continue from what `resume_state` returned."""
+        """Continue from what `resume_state` returned (or, before the two critics were one stack, its two stacks)."""
+        state = twinned(state) if "q1" in state["nets"] else state
         for name in self.NETS:
             getattr(self, name).load_state_dict(state["nets"][name])
         self.actor_opt.load_state_dict(state["actor_opt"])
