@@ -1,10 +1,14 @@
 """TD3's two critics of K seeds as one stack: each seed's twins compute what its own two networks do."""
 
+import numpy as np
 import pytest
 import torch
+from gymnasium.spaces import Box
 
 from layered.learners.stacked import StackedAdam, StackedMLP, TwinMLP
-from layered.learners.td3 import mlp
+from layered.learners.td3 import TD3, TD3Config, mlp
+from layered.learners.td3_group import TD3Group
+from layered.outputs import OutputLayout
 
 K, BATCH, SIZES = 3, 5, (4, 8, 6, 1)
 
@@ -65,7 +69,7 @@ def test_twin_adam_keeps_a_seeds_moments_as_one_adam_of_both_networks_does(seed)
     x = torch.randn(K, BATCH, SIZES[0])
     twin(x).square().sum().backward()
     (firsts[seed](x[seed]).square().sum() + seconds[seed](x[seed]).square().sum()).backward()
-    adam.step(torch.ones(K, dtype=torch.bool).numpy())
+    adam.step(np.ones(K, bool))
     reference.step()
     state, expected = adam.seed_state(seed)["state"], reference.state_dict()["state"]
     assert state.keys() == expected.keys() == set(range(len(single)))
@@ -89,7 +93,7 @@ def test_twin_adam_steps_each_twin_as_the_adam_of_two_stacks_does_bit_for_bit():
     template = torch.optim.Adam(mlp(sizes).parameters(), lr=1e-3).state_dict()
     twin_adam = StackedAdam(list(twin.parameters()), 1e-3, K, template, twins=True)
     stacks_adam = StackedAdam([*one.parameters(), *two.parameters()], 1e-3, K, template)
-    rows = torch.tensor([True, False, True]).numpy()
+    rows = np.array([True, False, True])
     for _ in range(3):
         for p, q, r in zip(twin.parameters(), one.parameters(), two.parameters(), strict=True):
             grad = torch.randn_like(p) * 1e-3
@@ -106,13 +110,6 @@ def test_twin_adam_steps_each_twin_as_the_adam_of_two_stacks_does_bit_for_bit():
 def test_a_group_whose_critics_were_two_stacks_resumes_as_the_twins():
     """A group checkpoint of before the twins (`q1`, `q2` and their targets; Adam's moments the first's, then the
     second's) loads into the one stack and goes on as the group it was taken from."""
-    import numpy as np
-    from gymnasium.spaces import Box
-
-    from layered.learners.td3 import TD3, TD3Config
-    from layered.learners.td3_group import TD3Group
-    from layered.outputs import OutputLayout
-
     obs, act, config = Box(-1.0, 1.0, (3,), np.float32), Box(-1.0, 1.0, (1,), np.float32), TD3Config(
         hidden=(12, 20), batch_size=8, buffer_size=50)
     groups = [TD3Group([TD3(obs, act, OutputLayout(1), config, seed) for seed in (0, 1)]) for _ in range(2)]
