@@ -123,7 +123,7 @@ class StackedAdam:
         the parameters are a `TwinMLP`'s, `[K, 2, ...]`, which a single network's Adam holds as the first twin's
         parameters, then the second's."""
         self.params = list(params)
-        self.twins = twins
+        self._nets = 2 if twins else 1  # slices per seed
         self.lr = lr
         self.beta1, self.beta2 = template["param_groups"][0]["betas"]
         self.eps = template["param_groups"][0]["eps"]
@@ -135,7 +135,6 @@ class StackedAdam:
         # every seed's slices of each parameter, moment and count (seed by seed, a twin's after the other's), cut
         # once: they are written in place only, so the slices stay theirs (a gradient is a new tensor at every
         # backward pass and is cut at each step)
-        self._nets = 2 if twins else 1  # slices per seed
         with torch.no_grad():  # (as `step` cuts and writes them)
             self._slices = [(self._cut(p), self._cut(m), self._cut(v), self._counts_cut(c)) for p, m, v, c
                             in zip(self.params, self.exp_avg, self.exp_avg_sq, self._counts, strict=True)]
@@ -144,7 +143,7 @@ class StackedAdam:
 
     def _cut(self, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """A stacked tensor's slices: a seed's, or each twin's of a seed, in turn."""
-        return t.flatten(0, 1).unbind(0) if self.twins else t.unbind(0)
+        return t.flatten(0, 1).unbind(0) if self._nets == 2 else t.unbind(0)
 
     def _counts_cut(self, counts: torch.Tensor) -> list[torch.Tensor]:
         """A parameter's [K] counts as its slices' counts: a seed's twins share the seed's."""
@@ -186,19 +185,17 @@ class StackedAdam:
         for p in self.params:
             assert p.grad is not None, "step follows a backward pass through every parameter"
             cuts.append(self._cut(p.grad))
+        # the counts of the seeds stepped get one more each, as fused Adam's own step adds 1 to every count it is
+        # handed (here in one operation, not one per slice); then torch's fused Adam kernel itself on the slices
         if every:  # (the slices of every seed in one list, made once: only the gradients' are new)
             params, exp_avg, exp_avg_sq, counts = self._every
             grads = [g for cut in cuts for g in cut]
+            self._counts += 1
         else:
             chosen = [k * self._nets + i for k in seeds for i in range(self._nets)]
             params, exp_avg, exp_avg_sq, counts = ([views[j] for views in part for j in chosen]
                                                    for part in zip(*self._slices, strict=True))
             grads = [cut[j] for cut in cuts for j in chosen]
-        # the counts of the seeds stepped, one more each, as fused Adam's own step adds 1 to every count it is handed
-        # (here in one operation, not one per slice), then torch's fused Adam kernel itself on the slices
-        if every:
-            self._counts += 1
-        else:
             self._counts[:, list(seeds)] += 1
         torch._fused_adam_(params, grads, exp_avg, exp_avg_sq, [], counts, lr=self.lr, beta1=self.beta1,
                            beta2=self.beta2, weight_decay=0.0, eps=self.eps, amsgrad=False, maximize=False)
@@ -239,9 +236,9 @@ class StackedAdam:
         """For each parameter of a single network's Adam: its index there, the index j of the stacked parameter
         holding it, and that parameter's moments as [K, ...] (a twin's view of them for `twins`)."""
         n = len(self.params)
-        for i in range(2 if self.twins else 1):
+        for i in range(self._nets):
             for j, (m, v) in enumerate(zip(self.exp_avg, self.exp_avg_sq, strict=True)):
-                yield (i * n + j, j, m[:, i], v[:, i]) if self.twins else (j, j, m, v)
+                yield (i * n + j, j, m[:, i], v[:, i]) if self._nets == 2 else (j, j, m, v)
 
 
 def _unstack(t: torch.Tensor, k: int, index: int) -> torch.Tensor:

@@ -67,8 +67,9 @@ mask of the seeds whose update computed it (the others' values are meaningless).
 def twinned(state: dict[str, Any]) -> dict[str, Any]:
     """A group's `resume_state` written when its critics were two stacks (`q1`, `q2` and their targets, Adam's
     moments the first's then the second's), as the one stack of twins holds it, so that such a group resumes."""
-    nets = {name: net for name, net in state["nets"].items() if name[:2] not in ("q1", "q2")}
-    for name, first, second in (("critic", "q1", "q2"), ("critic_target", "q1_target", "q2_target")):
+    pairs = (("critic", "q1", "q2"), ("critic_target", "q1_target", "q2_target"))
+    nets = {name: net for name, net in state["nets"].items() if not any(name in pair[1:] for pair in pairs)}
+    for name, first, second in pairs:
         a, b = state["nets"][first], state["nets"][second]
         nets[name] = {key: torch.stack([a[key], b[key]], dim=1) for key in a}
     opt = state["critic_opt"]
