@@ -7,6 +7,7 @@ from gymnasium.spaces import Box
 
 from layered.buffer import Batch
 from layered.learners.td3 import TD3, TD3Config
+from layered.learners.stacked import follow
 from layered.learners.td3_group import TD3Group
 from layered.outputs import OutputLayout
 
@@ -172,3 +173,24 @@ def test_a_group_of_learners_started_from_weights_keeps_their_moments_and_counts
     for part in ("actor", "critic", "actor_target", "critic_target", "actor_opt", "critic_opt", "updates"):
         assert_same_state(mine[part], state[part], part)
     assert group.seed_state_dict(1)["critic_opt"]["state"] == {} and int(group.updates[1]) == 0  # a new one's
+
+
+def test_a_soft_update_by_one_weight_for_every_seed_is_the_per_seed_one_bit_for_bit():
+    """`follow` by a float (all layers in one operation) moves every seed as a [K] weight of that float does; a
+    seed's 0 leaves it where it was."""
+    torch.manual_seed(0)
+    targets = [torch.zeros(3, 4, 2), torch.zeros(3, 1, 2)]
+    sources = [torch.ones(3, 4, 2), torch.full((3, 1, 2), 3.0)]
+    by_float = [t.clone() for t in targets]
+    follow(by_float, sources, 0.25)
+    assert torch.equal(by_float[0], torch.full((3, 4, 2), 0.25))  # 0 + 0.25 x (1 - 0)
+    assert torch.equal(by_float[1], torch.full((3, 1, 2), 0.75))  # 0 + 0.25 x (3 - 0)
+    noisy = [torch.randn(3, 4, 2), torch.randn(3, 1, 2)]
+    each, one = [t.clone() for t in noisy], [t.clone() for t in noisy]
+    follow(each, sources, torch.full((3,), 0.005))
+    follow(one, sources, 0.005)
+    assert all(torch.equal(a, b) for a, b in zip(each, one, strict=True))
+    masked = [t.clone() for t in noisy]
+    follow(masked, sources, torch.tensor([0.005, 0.0, 0.005]))
+    assert all(torch.equal(m[1], n[1]) and torch.equal(m[0::2], o[0::2])
+               for m, n, o in zip(masked, noisy, one, strict=True))

@@ -329,7 +329,11 @@ def masked(rows: np.ndarray, device: torch.device) -> torch.Tensor:
 
 
 @torch.no_grad()
-def follow(targets: list[torch.Tensor], sources: list[torch.Tensor], weight: torch.Tensor) -> None:
-    """The soft update of each target towards its source, by `weight` per seed ([K]; 0 leaves a seed's as it is)."""
+def follow(targets: list[torch.Tensor], sources: list[torch.Tensor], weight: float | torch.Tensor) -> None:
+    """The soft update of each target towards its source: by `weight` in every seed (all of them in one operation),
+    or by `weight[k]` in seed k ([K]; 0 leaves a seed's as it is)."""
+    if isinstance(weight, float):
+        torch._foreach_lerp_(targets, sources, weight)
+        return
     for target, source in zip(targets, sources, strict=True):
         target.lerp_(source, weight.view((-1,) + (1,) * (target.dim() - 1)))

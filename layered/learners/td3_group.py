@@ -281,7 +281,8 @@ class TD3Group:
         self.actor_opt.zero_grad()
         losses.sum().backward()
         self.actor_opt.step(rows, everyone)
-        weight = self._weights(rows) * self.config.tau
+        every = everyone or (isinstance(rows, np.ndarray) and bool(rows.all()))
+        weight = self.config.tau if every else self._weights(rows) * self.config.tau
         follow(*self._actor_pair, weight)
         follow(*self._critic_pairs, weight)
         return self._per_seed(losses.detach(), seeds)
