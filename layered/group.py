@@ -61,6 +61,7 @@ from layered.pending_losses import PendingLosses
 from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.replay_journal import ReplayJournal, replay_folder, replays_of
+from layered.report import count
 from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
 from layered.rules import Rules
@@ -296,7 +297,8 @@ class Group:
         pending = loop.pending
         losses = {self.names[i]: PendingLosses() for i in learn}
         every = np.ones(self.rows, bool)
-        bar = Progress(f"phase {p}: {'+'.join(phase.learn)} ({self.rows} seeds)", budget, loop.step, self.progress)
+        label = f"phase {p}: {'+'.join(phase.learn)} ({count(self.rows, 'seed')})"
+        bar = Progress(label, budget, loop.step, self.progress)
 
         def act(i: int, seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
             full = all_rows(seen, deciding)
