@@ -6,8 +6,8 @@ import torch
 from gymnasium.spaces import Box
 
 from layered.buffer import Batch
-from layered.learners.td3 import TD3, TD3Config
 from layered.learners.stacked import follow
+from layered.learners.td3 import TD3, TD3Config
 from layered.learners.td3_group import TD3Group
 from layered.outputs import OutputLayout
 

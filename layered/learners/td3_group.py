@@ -281,7 +281,7 @@ class TD3Group:
         self.actor_opt.zero_grad()
         losses.sum().backward()
         self.actor_opt.step(rows, everyone)
-        every = everyone or (isinstance(rows, np.ndarray) and bool(rows.all()))
+        every = everyone or (seeds is None and isinstance(rows, np.ndarray))  # (a host mask that `subset` kept whole)
         weight = self.config.tau if every else self._weights(rows) * self.config.tau
         follow(*self._actor_pair, weight)
         follow(*self._critic_pairs, weight)
