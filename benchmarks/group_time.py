@@ -1,6 +1,7 @@
 """Where a group's time goes: one `layered train --seeds K` in this process, its wall time split into
 start-up, set-up, the environments' steps and resets, acting, updates, evaluations, checkpoints,
-the losses' read-back from the device, and the rest of the loop (the stack rules, transitions, logs).
+the losses' read-back from the device, the episodes' log rows, and the rest of the loop (the stack rules,
+transitions).
 
     python benchmarks/group_time.py                                     # Pendulum TD3, K = 8, on CPU
     python benchmarks/group_time.py --recipe recipes/hopper/tla-realtime.toml --seeds 16
@@ -31,7 +32,7 @@ import torch  # noqa: E402  (after START: imports count as start-up)
 
 ROOT = Path(__file__).resolve().parent.parent
 PARTS = ("environments: steps", "environments: resets", "acting", "updates", "losses read back", "evaluations",
-         "checkpoints")
+         "checkpoints", "episode logs")
 
 
 class Clock:
@@ -93,6 +94,7 @@ def main() -> None:
                               (group_module.Group, "_fresh", "evaluations"),
                               (group_module.Group, "_evaluator", "evaluations"),
                               (group_module.Group, "_checkpoint", "checkpoints"),
+                              (group_module.Group, "_log_episodes", "episode logs"),
                               (group_module, "save_checkpoint", "checkpoints"),
                               (group_module, "_read_back", "losses read back")):
         clock.wrap(owner, name, part)
@@ -118,7 +120,7 @@ def main() -> None:
     parts = {"start-up (imports)": begun - START,
              "set-up and results (learners built, run directories, results written)": (done - begun) - in_loop,
              **{part: clock.seconds.get(part, 0.0) for part in PARTS},
-             "the rest of the loop (stack rules, transitions, logs)": in_loop - sum(clock.seconds.values())}
+             "the rest of the loop (stack rules, transitions)": in_loop - sum(clock.seconds.values())}
     total = done - START
     print(f"{Path(args.recipe).parent.name}/{Path(args.recipe).stem}, K = {args.seeds}, {args.steps} steps per phase "
           f"({args.warmup} random), device {args.device}, {args.threads} threads{''.join(f', {x}' for x in args.set)}"

@@ -200,6 +200,8 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
                 group.train(saved)
         finally:
             for seed in seeds:
+                seed.metrics.close()
+                seed.episodes.close()
                 if seed.events is not None:
                     seed.events.close()
         for seed in seeds:

@@ -148,6 +148,8 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
     except Diverged as e:
         raise Diverged(f"{e}; {_way_on(out, recipe, e.layer)}", e.layer) from None
     finally:
+        run.metrics.close()
+        run.episodes.close()
         if run.events is not None:
             run.events.close()
     write_results(recipe, state.rows, out, info.label)
