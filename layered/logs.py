@@ -12,8 +12,9 @@ class CsvLog:
     """A CSV file whose columns are given up front, so no row's values are ever dropped.
 
     Each row is appended and flushed at once: the file's size is then a position a stopped run can return
-    to (see `size` and `truncate`). The file stays open between rows (opening it for each cost a group of
-    many seeds, which logs a row per episode end, tens of microseconds a row); `close` when done.
+    to (see `size` and `truncate`). The file stays open between rows (opening and closing it for each made
+    a row about four times as costly, and a group of many seeds logs a row per episode end); `close` when
+    done.
     """
 
     def __init__(self, path: Path, fields: Sequence[str]) -> None:
