@@ -1,6 +1,8 @@
 """TD3: deterministic given a seed, save -> load gives identical behaviour, learns a simple target."""
 
 import copy
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -68,6 +70,32 @@ def test_checkpoint_round_trip_gives_identical_behaviour(tmp_path):
     b.buffer, b.rng = a.buffer, np.random.default_rng(9)
     a.rng = np.random.default_rng(9)
     assert a.update() == b.update()
+
+
+def test_a_loaded_learner_makes_its_optimisers_when_first_used_at_the_configured_rate(tmp_path):
+    a = filled(3)
+    for _ in range(4):
+        a.update()
+    save_checkpoint(tmp_path / "fast.pt", "fast", a.state_dict())
+    # acting from a checkpoint (evaluating, exporting, deploying) makes no optimiser, whose making imports
+    # torch's compiler: seconds of a command's start
+    code = ("import sys, numpy as np; from gymnasium.spaces import Box; from layered.outputs import OutputLayout; "
+            "from layered.learners.td3 import TD3, TD3Config; from layered.checkpoint import load_checkpoint; "
+            "act = Box(np.array([-2.0, 0.0], np.float32), np.array([2.0, 1.0], np.float32)); "
+            "b = TD3(Box(-1.0, 1.0, (3,), np.float32), act, OutputLayout(2), TD3Config(hidden=(32, 32)), 4); "
+            "from pathlib import Path; b.load_state_dict(load_checkpoint(Path(sys.argv[1]), 'fast')); "
+            "b.act(np.zeros(3, np.float32), False); print('torch._dynamo' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path / "fast.pt")], capture_output=True, text=True,
+                          check=True)
+    assert done.stdout.split() == ["False"]
+    # made later, an optimiser takes the state loaded before, at the learning rate configured now
+    b = TD3(OBS, ACT, OutputLayout(2), CONFIG.model_copy(update={"lr": 1e-4}), 4)
+    b.load_state_dict(load_checkpoint(tmp_path / "fast.pt", "fast"))
+    saved, made = a.state_dict()["critic_opt"], b.state_dict()["critic_opt"]
+    assert [g["lr"] for g in made["param_groups"]] == [1e-4]
+    assert saved["state"].keys() == made["state"].keys()
+    for key, moments in saved["state"].items():
+        assert all(torch.equal(value, made["state"][key][name]) for name, value in moments.items())
 
 
 def test_bad_checkpoints_are_clear_errors(tmp_path):

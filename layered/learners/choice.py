@@ -14,7 +14,7 @@ from torch import nn
 
 from layered.buffer import ReplayBuffer, Transition
 from layered.learners.base import Learner, Losses
-from layered.learners.td3 import TD3, TD3Config, adam, linear_macs, load_adam, mlp
+from layered.learners.td3 import TD3, LazyAdam, TD3Config, linear_macs, mlp
 from layered.outputs import OutputLayout
 
 
@@ -28,7 +28,7 @@ class ChoiceQ:
         self.n = n
         self.head = head
         self.net = mlp((obs_dim + act_dim, *cfg.hidden, n)).to(td3.device)
-        self.opt = adam(self.net.parameters(), cfg.lr)
+        self.opt = LazyAdam(self.net.parameters(), cfg.lr)
         self.buffer = ReplayBuffer(obs_dim, act_dim + 1, cfg.buffer_size, td3.device)  # the choice is the last column
 
     @torch.no_grad()
@@ -69,7 +69,7 @@ class ChoiceQ:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.net.load_state_dict(state["net"])
-        load_adam(self.opt, state["opt"], self.td3.config.lr)
+        self.opt.load_state_dict(state["opt"])
 
 
 class ActionAndChoice(nn.Module):
