@@ -153,6 +153,11 @@ EXTRA_MEASURES: list[Metric] = [("jerk", "jerk", "{:.3f}"), ("compute", "MACs / 
 TABLE_3: list[Metric] = [
     ("auc", "AUC", "{:.3f}"), ("return_mean", "return", "{:.1f}"), ("repetition", "AR", "{:.1%}"),
 ]
+PER_SEED: list[Metric] = [
+    ("return_mean", "return", "{:.1f}"), ("auc", "AUC", "{:.3f}"), ("fresh_final_return_mean", "final", "{:.1f}"),
+    ("fresh_best_return_mean", "best", "{:.1f}"), ("best_step", "best step", "{:.0f}"),
+    ("fresh_best_repetition", "best AR", "{:.1%}"),
+]
 FINAL_AND_BEST: list[Metric] = [
     ("fresh_final_return_mean", "final", "{:.1f}"), ("best_return_mean", "best as selected", "{:.1f}"),
     ("fresh_best_return_mean", "best", "{:.1f}"), ("fresh_final_repetition", "final AR", "{:.1%}"),
@@ -160,13 +165,18 @@ FINAL_AND_BEST: list[Metric] = [
 ]
 
 
-def _cell(setup: Any, key: str, fmt: str) -> str:
-    mean, std = setup.stat(key)
+def _spread(mean: float, std: float, seeds: int, fmt: str) -> str:
+    """mean ± std over `seeds` seeds as a cell; n/a where there is no value."""
     if mean != mean:  # NaN: no value for this setup
         return "n/a"
-    if len(setup.runs) == 1:  # no spread over seeds to show
+    if seeds == 1:  # no spread over seeds to show
         return f"{fmt.format(mean)} (1 seed)"
     return f"{fmt.format(mean)} ± {fmt.format(std)}"
+
+
+def _cell(setup: Any, key: str, fmt: str) -> str:
+    mean, std = setup.stat(key)
+    return _spread(mean, std, len(setup.runs), fmt)
 
 
 def wide_table(setups: Sequence[Any], metrics: Sequence[Metric]) -> str:
@@ -189,6 +199,44 @@ def seeds_table(setups: Sequence[Any]) -> str:
         dirs = ", ".join(str(r.path) for r in s.runs)
         lines.append(f"| {s.env} | {s.label} | {', '.join(str(r.seed) for r in s.runs)} | {dirs} |")
     return "\n".join(lines)
+
+
+def _number(value: Any) -> float:
+    """A measure's value, NaN where a run has none."""
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else float("nan")
+
+
+def per_seed_table(setup: Any) -> str:
+    """One row per seed of a setup: its last phase's measures and, where the stack trained in phases, each
+    earlier phase's best weights on fresh episodes (for TLA, the slow layer alone), so that what the means
+    hide shows: a seed that stands still, a phase that lowers the layer it started from."""
+    earlier = [(i, p) for i, p in enumerate(setup.runs[0].phases[:-1]) if "fresh_best_return_mean" in p]
+    columns = [(f"phase {p['phase']} ({'+'.join(p.get('learn', []))}): best", "{:.1f}") for _, p in earlier]
+    columns += [(name, fmt) for _, name, fmt in PER_SEED]
+    table = np.array([[_number(r.phases[i].get("fresh_best_return_mean")) if i < len(r.phases) - 1 else np.nan
+                       for i, _ in earlier] + [_number(r.final.get(key)) for key, _, _ in PER_SEED]
+                      for r in setup.runs]).reshape(len(setup.runs), len(columns))
+    lines = ["| " + " | ".join(["seed", *(name for name, _ in columns)]) + " |", "|---" * (len(columns) + 1) + "|"]
+    for r, values in zip(setup.runs, table, strict=True):
+        cells = ["n/a" if v != v else fmt.format(v) for v, (_, fmt) in zip(values, columns, strict=True)]
+        lines.append("| " + " | ".join([str(r.seed), *cells]) + " |")
+    spread = [_spread(float(np.mean(c)), float(np.std(c)), len(c), fmt)
+              for c, (_, fmt) in zip(table.T, columns, strict=True)]
+    lines.append("| " + " | ".join(["mean ± std", *spread]) + " |")
+    return "\n".join(lines)
+
+
+def write_seeds_csv(setups: Sequence[Any], path: Path) -> None:
+    """Every phase of every run on a row of its own (setup, seed, phase, what it learned and every measure of
+    `results.json`), for analyses of one's own."""
+    rows = [(s, r, p) for s in setups for r in s.runs for p in (r.phases or (r.final,))]
+    keys = sorted({k for _, _, p in rows for k, v in p.items() if k != "phase" and not np.isnan(_number(v))})
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["env", "label", "method", "seed", "phase", "learn", *keys])
+        for s, r, p in rows:
+            writer.writerow([s.env, s.label, s.method, r.seed, p.get("phase", ""), "+".join(p.get("learn", [])),
+                             *(p.get(k, "") for k in keys)])
 
 
 def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
@@ -280,6 +328,13 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
                   "weights of its best evaluation (the paper's protocol), both on `eval.fresh_episodes` episodes "
                   "of a seed never used for choosing; \"best as selected\" is that best evaluation's own return, "
                   "biased upwards by the choice.", "", wide_table(setups, FINAL_AND_BEST), ""]
+    parts += ["## Per seed", "",
+              "Each seed's last phase: its final evaluation's return, AUC, and its final and best weights on fresh "
+              "episodes (with the best evaluation's step and the best weights' action repetition, AR); for a stack "
+              "trained in phases, each earlier phase's best weights on fresh episodes too. Every phase of every run "
+              "is a row of `seeds.csv`.", ""]
+    for s in setups:
+        parts += [f"### {s.env}, {s.label}", "", per_seed_table(s), ""]
     parts += ["## Learning curves", "", "![learning curves](curves.png)", ""]
     parts += _threshold_and_gallery_figures(setups, out)
     parts += ["## Runs", "", seeds_table(setups), ""]
@@ -292,6 +347,7 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
         for s in setups:
             stats = [v for k in keys for v in s.stat(k)]
             writer.writerow([s.env, s.label, s.method, " ".join(str(r.seed) for r in s.runs), *stats])
+    write_seeds_csv(setups, out / "seeds.csv")
     plot_setup_curves(setups, out / "curves.png")
     return text
 

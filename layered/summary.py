@@ -10,6 +10,7 @@ import tomllib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -31,6 +32,7 @@ class FinishedRun:
     curve: tuple[tuple[int, float], ...]
     total_curve: tuple[tuple[int, float], ...] = ()
     phase_starts: tuple[int, ...] = ()  # steps since training began at which phases 1, 2, ... started
+    phases: tuple[dict[str, Any], ...] = ()  # each phase's results as `results.json` holds them, the last = `final`
 
     @property
     def method(self) -> str:
@@ -67,6 +69,7 @@ def _read_finished_run(path: Path, results_file: Path) -> FinishedRun:
         realtime=any(layer.get("delay", 0) > 0 for layer in recipe["layers"]),
         final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)},
         curve=curve, total_curve=_total_curve(rows), phase_starts=_phase_starts(rows),
+        phases=tuple(results["phases"]),
     )
 
 

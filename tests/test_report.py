@@ -89,6 +89,10 @@ def test_report_command_on_real_runs(tmp_path):
     assert (tmp_path / "report" / "curves.png").stat().st_size > 0
     assert len(find_runs([tmp_path / "runs"])) == 3
     assert "pendulum/td3,td3,0 1," in (tmp_path / "report" / "summary.csv").read_text()
+    phases = [line.split(",")[:6] for line in (tmp_path / "report" / "seeds.csv").read_text().splitlines()[1:]]
+    assert [row[1:] for row in phases] == [
+        ["pendulum/td3", "td3", "0", "0", "fast"], ["pendulum/td3", "td3", "1", "0", "fast"],
+        ["pendulum/tla-c", "tla-c", "0", "0", "slow"], ["pendulum/tla-c", "tla-c", "0", "1", "fast"]]
     # the evaluations behind Fig. 2 and the gallery ran once, for the stack with a threshold and two layers
     assert "[1/1] " in proc.stderr and "tla-c-s0: evaluating threshold sweep and gallery" in proc.stderr
     assert sorted(p.name for p in (tmp_path / "runs" / "tla-c-s0" / "eval").iterdir()) == [
@@ -130,6 +134,31 @@ def test_real_time_runs_get_the_layout_of_table_3(tmp_path):
     assert "| Hopper-v5 | 0.450 ± 0.050 | 0.600 (1 seed) | 3050.0 ± 50.0 | 3400.0 (1 seed) |" in table3
     assert "Pendulum-v1" not in table3 and "Pendulum-v1" in text.split("## Table 1")[1]
     assert (tmp_path / "curves.png").stat().st_size > 0
+
+
+def test_the_per_seed_table_shows_each_seed_and_its_earlier_phases(tmp_path):
+    from layered.report import write_report
+
+    def two_phases(seed, slow_best, final, best):
+        slow = {"phase": 0, "learn": ["slow"], "fresh_best_return_mean": slow_best}
+        last = {"phase": 1, "learn": ["fast"], "return_mean": final + 1.0, "auc": 0.25 * (seed + 1),
+                "fresh_final_return_mean": final, "fresh_best_return_mean": best, "best_step": 5000 * seed,
+                "fresh_best_repetition": 0.5}
+        return FinishedRun(Path(f"/r/tla-{seed}"), "Hopper-v5", "hopper/tla-realtime", seed, True,
+                           {k: v for k, v in last.items() if k != "learn"}, ((0, 1.0),), phases=(slow, last))
+
+    setups = group([two_phases(0, 900.0, 300.0, 400.0), two_phases(1, 500.0, 700.0, 1000.0)])
+    text = write_report(setups, tmp_path)
+    table = text.split("### Hopper-v5, hopper/tla-realtime")[1].split("##")[0]
+    assert "| seed | phase 0 (slow): best | return | AUC | final | best | best step | best AR |" in table
+    assert "| 0 | 900.0 | 301.0 | 0.250 | 300.0 | 400.0 | 0 | 50.0% |" in table
+    assert "| 1 | 500.0 | 701.0 | 0.500 | 700.0 | 1000.0 | 5000 | 50.0% |" in table
+    assert ("| mean ± std | 700.0 ± 200.0 | 501.0 ± 200.0 | 0.375 ± 0.125 | 500.0 ± 200.0 | 700.0 ± 300.0 "
+            "| 2500 ± 2500 | 50.0% ± 0.0% |") in table
+    rows = (tmp_path / "seeds.csv").read_text().splitlines()
+    assert rows[0].startswith("env,label,method,seed,phase,learn,auc,best_step,")
+    assert len(rows) == 5 and rows[1].startswith("Hopper-v5,hopper/tla-realtime,tla-realtime,0,0,slow,,,")
+    assert rows[4].startswith("Hopper-v5,hopper/tla-realtime,tla-realtime,1,1,fast,0.5,5000,")
 
 
 def test_step_axes_read_as_thousands_and_millions():
