@@ -215,7 +215,7 @@ def per_seed_table(setup: Any) -> str:
     columns += [(name, fmt) for _, name, fmt in PER_SEED]
     table = np.array([[_number(r.phases[i].get("fresh_best_return_mean")) if i < len(r.phases) - 1 else np.nan
                        for i, _ in earlier] + [_number(r.final.get(key)) for key, _, _ in PER_SEED]
-                      for r in setup.runs]).reshape(len(setup.runs), len(columns))
+                      for r in setup.runs])
     lines = ["| " + " | ".join(["seed", *(name for name, _ in columns)]) + " |", "|---" * (len(columns) + 1) + "|"]
     for r, values in zip(setup.runs, table, strict=True):
         cells = ["n/a" if v != v else fmt.format(v) for v, (_, fmt) in zip(values, columns, strict=True)]
