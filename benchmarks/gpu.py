@@ -28,9 +28,9 @@ A fourth part, **targets**, measures the figures the vectorised engine is held t
 it must reach, in one table: one TD3 seed on HalfCheetah-v5 with 256-256 networks (the best of the
 single run's `--modes` and a group of one's, over training steps alone as LeanRL's published 936
 steps/s on an H100 are, and a group of one's `--group-modes` with its evaluations), `--target-seeds`
-(32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s; over training steps alone too) and as
-`--splits` groups at once, and as many seeds of the real-time Hopper TLA recipe as one group (10,000), the
-groups' environments in `--group-workers`.
+(32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s; over training steps alone too), and as
+many seeds of the real-time Hopper TLA recipe (10,000), each also as `--splits` groups at once, the groups'
+environments in `--group-workers`.
 A failed setting is a row that says why; the others still run.
 
 The rates of the sweep, group and targets parts are read from progress lines, and each interval between
@@ -272,7 +272,7 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
                                          every(args), mode, "0", [])["aggregate"])
     for what, recipe, env, settings, needed in (
             (f"{k} TD3 seeds of Hopper-v5, 400-300", None, "Hopper-v5", [], 20_000),
-            (f"{k} seeds of real-time Hopper TLA (2 layers), one group", str(REALTIME_TLA), "Hopper-v5",
+            (f"{k} seeds of real-time Hopper TLA (2 layers)", str(REALTIME_TLA), "Hopper-v5",
              [*REALTIME_WARMUP, f"eval.every={every(args)}", "eval.episodes=1", "eval.fresh_episodes=0"],
              10_000)):
         for mode in args.group_modes.split(","):
@@ -281,7 +281,7 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
                     measured(what, f"compile {mode}, env.workers {workers}, training steps alone", needed,
                              lambda env=env, workers=workers: training_steps(args.device, env, "400,300", args.steps,
                                                                     args.warmup, k, workers))
-                for splits in (1,) if recipe is not None else map(int, args.splits.split(",")):
+                for splits in map(int, args.splits.split(",")):
                     apart = ", one group" if splits == 1 else f", {splits} groups at once"
                     measured(what, f"compile {mode}, env.workers {workers}{apart}", needed,
                              lambda recipe=recipe, env=env, settings=settings, mode=mode, workers=workers,
@@ -347,7 +347,7 @@ def main() -> None:
                         help="env.workers values of the group part (0,auto: in the training process, and in workers), "
                              "each with its env.threads after a colon if wanted (0:8, auto:2)")
     parser.add_argument("--splits", default="1",
-                        help="the group part's (and the targets' Hopper TD3 group's) seeds cut into this many groups "
+                        help="the group part's (and the targets' Hopper groups') seeds cut into this many groups "
                              "trained at once, each a process on its share of the cores (1: one group; 1,2,4)")
     parser.add_argument("--parts", default="modes,sweep,group",
                         help="which parts to run: modes, sweep, group (the default: all three) and targets")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import gzip
+import json
 import shutil
 import statistics
 import sys
@@ -79,6 +80,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=1000)
     parser.add_argument("--window", type=int, default=200, help="steps the profiler records, at the end (0: none)")
     parser.add_argument("--trace", type=Path, help="write the window's trace here (.json.gz)")
+    parser.add_argument("--times", type=Path, help="write the timed steps' durations here (seconds, JSON)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         gaps, prof = profiled(args, Path(tmp))
@@ -86,6 +88,8 @@ def main() -> None:
             prof.export_chrome_trace(str(Path(tmp) / "trace.json"))
             with open(Path(tmp) / "trace.json", "rb") as f, gzip.open(args.trace, "wb") as g:
                 shutil.copyfileobj(f, g)
+    if args.times:
+        args.times.write_text(json.dumps(gaps))
     deciles = statistics.quantiles(gaps, n=10)
     print(f"\n{args.seeds} seed(s) of TD3 ({args.hidden}) on {args.env}, {args.device}: a training step took a median "
           f"of {statistics.median(gaps) * 1e3:.3f} ms (p90 {deciles[-1] * 1e3:.3f} ms) over {len(gaps)} steps, "
