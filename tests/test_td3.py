@@ -72,30 +72,28 @@ def test_checkpoint_round_trip_gives_identical_behaviour(tmp_path):
     assert a.update() == b.update()
 
 
-def test_a_loaded_learner_makes_its_optimisers_when_first_used_at_the_configured_rate(tmp_path):
-    a = filled(3)
-    for _ in range(4):
-        a.update()
-    save_checkpoint(tmp_path / "fast.pt", "fast", a.state_dict())
-    # acting from a checkpoint (evaluating, exporting, deploying) makes no optimiser, whose making imports
-    # torch's compiler: seconds of a command's start
+def test_training_and_acting_from_a_checkpoint_import_no_compiler_and_a_loaded_state_takes_the_configured_rate(
+        tmp_path):
+    # making a torch optimiser imports torch's compiler (seconds of a command's start): a learner's Adam does not
     code = ("import sys, numpy as np; from gymnasium.spaces import Box; from layered.outputs import OutputLayout; "
-            "from layered.learners.td3 import TD3, TD3Config; from layered.checkpoint import load_checkpoint; "
+            "from layered.buffer import Transition; from layered.learners.td3 import TD3, TD3Config; "
+            "from layered.checkpoint import save_checkpoint; from pathlib import Path; "
             "act = Box(np.array([-2.0, 0.0], np.float32), np.array([2.0, 1.0], np.float32)); "
-            "b = TD3(Box(-1.0, 1.0, (3,), np.float32), act, OutputLayout(2), TD3Config(hidden=(32, 32)), 4); "
-            "from pathlib import Path; b.load_state_dict(load_checkpoint(Path(sys.argv[1]), 'fast')); "
-            "b.act(np.zeros(3, np.float32), False); print('torch._dynamo' in sys.modules)")
+            "a = TD3(Box(-1.0, 1.0, (3,), np.float32), act, OutputLayout(2), TD3Config(hidden=(32, 32), batch_size=4), 3); "
+            "o = np.zeros(3, np.float32); [a.observe(Transition(o, a.random_action(), 1.0, o, False, 0.99)) for _ in range(8)]; "
+            "[a.update() for _ in range(4)]; save_checkpoint(Path(sys.argv[1]), 'fast', a.state_dict()); "
+            "print('torch._dynamo' in sys.modules)")
     done = subprocess.run([sys.executable, "-c", code, str(tmp_path / "fast.pt")], capture_output=True, text=True,
                           check=True)
     assert done.stdout.split() == ["False"]
-    # made later, an optimiser takes the state loaded before, at the learning rate configured now
+    saved = load_checkpoint(tmp_path / "fast.pt", "fast")
     b = TD3(OBS, ACT, OutputLayout(2), CONFIG.model_copy(update={"lr": 1e-4}), 4)
-    b.load_state_dict(load_checkpoint(tmp_path / "fast.pt", "fast"))
-    saved, made = a.state_dict()["critic_opt"], b.state_dict()["critic_opt"]
-    assert [g["lr"] for g in made["param_groups"]] == [1e-4]
-    assert saved["state"].keys() == made["state"].keys()
-    for key, moments in saved["state"].items():
-        assert all(torch.equal(value, made["state"][key][name]) for name, value in moments.items())
+    b.load_state_dict(saved)
+    loaded = b.state_dict()["critic_opt"]
+    assert [g["lr"] for g in loaded["param_groups"]] == [1e-4]
+    assert saved["critic_opt"]["state"].keys() == loaded["state"].keys()
+    for key, moments in saved["critic_opt"]["state"].items():
+        assert all(torch.equal(value, loaded["state"][key][name]) for name, value in moments.items())
 
 
 def test_bad_checkpoints_are_clear_errors(tmp_path):

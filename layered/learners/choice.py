@@ -14,7 +14,8 @@ from torch import nn
 
 from layered.buffer import ReplayBuffer, Transition
 from layered.learners.base import Learner, Losses
-from layered.learners.td3 import TD3, LazyAdam, TD3Config, linear_macs, mlp
+from layered.learners.adam import Adam
+from layered.learners.td3 import TD3, TD3Config, linear_macs, mlp
 from layered.outputs import OutputLayout
 
 
@@ -28,7 +29,7 @@ class ChoiceQ:
         self.n = n
         self.head = head
         self.net = mlp((obs_dim + act_dim, *cfg.hidden, n)).to(td3.device)
-        self.opt = LazyAdam(self.net.parameters(), cfg.lr)
+        self.opt = Adam(self.net.parameters(), cfg.lr)
         self.buffer = ReplayBuffer(obs_dim, act_dim + 1, cfg.buffer_size, td3.device)  # the choice is the last column
 
     @torch.no_grad()

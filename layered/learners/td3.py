@@ -15,6 +15,7 @@ from torch import nn
 from torch.func import functional_call
 
 from layered.buffer import Batch, ReplayBuffer, Transition
+from layered.learners.adam import Adam
 from layered.learners.base import Flag, Learner, LearnerConfig, Losses, Whole
 from layered.learners.precision import autocast, loaded_precision, resolve_precision, update_region
 from layered.outputs import OutputLayout
@@ -194,49 +195,6 @@ def linear_macs(module: nn.Module) -> int:
     return sum(m.in_features * m.out_features for m in module.modules() if isinstance(m, nn.Linear))
 
 
-class LazyAdam:
-    """Adam over `params` (fused where this torch build supports it on CPU), made when the learner first
-    updates or is saved: making a torch optimiser imports torch's compiler, about 1.5-2 s of a command's
-    start that evaluating, exporting or deploying a trained learner never needs. A state loaded before
-    then is loaded when it is made, at the learning rate given here rather than the saved one, so that a
-    run resumed with a changed `lr` (`layered resume --set`) takes it."""
-
-    def __init__(self, params: Any, lr: float) -> None:
-        self._params = list(params)
-        self.lr = lr
-        self._adam: torch.optim.Adam | None = None
-        self._loaded: dict[str, Any] | None = None  # a state to load when made
-
-    def made(self) -> torch.optim.Adam:
-        """The optimiser itself, made (with any state loaded before) on first use."""
-        if self._adam is None:
-            try:
-                self._adam = torch.optim.Adam(self._params, lr=self.lr, fused=True)
-            except (RuntimeError, TypeError):
-                self._adam = torch.optim.Adam(self._params, lr=self.lr)
-            if self._loaded is not None:
-                self.load_state_dict(self._loaded)
-                self._loaded = None
-        return self._adam
-
-    def zero_grad(self, set_to_none: bool = True) -> None:
-        self.made().zero_grad(set_to_none=set_to_none)
-
-    def step(self) -> None:
-        self.made().step()
-
-    def state_dict(self) -> dict[str, Any]:
-        return self.made().state_dict()
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        if self._adam is None:
-            self._loaded = state
-            return
-        self._adam.load_state_dict(state)
-        for group in self._adam.param_groups:
-            group["lr"] = self.lr
-
-
 class TD3(Learner):
     """Twin critics, delayed actor updates and target policy smoothing (registered as "td3" with its captured
     form, `layered.learners.captured`)."""
@@ -263,11 +221,11 @@ class TD3(Learner):
         self.critic = TwinCritic(obs_dim, act_dim, config.hidden).to(self.device)
         self.actor_target = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_opt = LazyAdam(self.actor.parameters(), config.lr)
-        self.critic_opt = LazyAdam(self.critic.parameters(), config.lr)
-        if config.compile != "off":  # made now: the steps compiled below step them
-            self.actor_opt.made()
-            self.critic_opt.made()
+        self.actor_opt = Adam(self.actor.parameters(), config.lr)
+        self.critic_opt = Adam(self.critic.parameters(), config.lr)
+        if config.compile != "off":  # the steps compiled below step them
+            self.actor_opt.for_compiled_steps()
+            self.critic_opt.for_compiled_steps()
         self.buffer = ReplayBuffer(obs_dim, act_dim, config.buffer_size, self.device)
         self.updates = 0
         self._low = torch.as_tensor(low, dtype=torch.float32, device=self.device)
