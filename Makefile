@@ -21,7 +21,7 @@ learning-check: $(VENV)/.installed
 # On a machine with a CUDA GPU: the tests that need one (they skip elsewhere), then the speed targets.
 gpu-check: $(VENV)/.installed
 	$(BIN)/python -m pytest -q -k "cuda or cudagraphs or gpu"
-	$(BIN)/python benchmarks/gpu.py --parts targets --modes cudagraphs --group-modes cudagraphs --group-workers auto
+	$(BIN)/python benchmarks/gpu.py --parts targets --modes cudagraphs --group-modes cudagraphs --group-workers auto --splits 1,2
 
 # The wheel, installed with its extras into a clean environment, trains a shipped recipe (named, not a
 # path) and exports it, outside the checkout.
