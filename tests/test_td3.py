@@ -79,8 +79,9 @@ def test_training_and_acting_from_a_checkpoint_import_no_compiler_and_a_loaded_s
             "from layered.buffer import Transition; from layered.learners.td3 import TD3, TD3Config; "
             "from layered.checkpoint import save_checkpoint; from pathlib import Path; "
             "act = Box(np.array([-2.0, 0.0], np.float32), np.array([2.0, 1.0], np.float32)); "
-            "a = TD3(Box(-1.0, 1.0, (3,), np.float32), act, OutputLayout(2), TD3Config(hidden=(32, 32), batch_size=4), 3); "
-            "o = np.zeros(3, np.float32); [a.observe(Transition(o, a.random_action(), 1.0, o, False, 0.99)) for _ in range(8)]; "
+            "a = TD3(Box(-1.0, 1.0, (3,), np.float32), act, OutputLayout(2), "
+            "TD3Config(hidden=(32, 32), batch_size=4), 3); o = np.zeros(3, np.float32); "
+            "[a.observe(Transition(o, a.random_action(), 1.0, o, False, 0.99)) for _ in range(8)]; "
             "[a.update() for _ in range(4)]; save_checkpoint(Path(sys.argv[1]), 'fast', a.state_dict()); "
             "print('torch._dynamo' in sys.modules)")
     done = subprocess.run([sys.executable, "-c", code, str(tmp_path / "fast.pt")], capture_output=True, text=True,
