@@ -83,7 +83,7 @@ def test_training_and_acting_from_a_checkpoint_import_no_compiler_and_a_loaded_s
             "TD3Config(hidden=(32, 32), batch_size=4), 3); o = np.zeros(3, np.float32); "
             "[a.observe(Transition(o, a.random_action(), 1.0, o, False, 0.99)) for _ in range(8)]; "
             "[a.update() for _ in range(4)]; save_checkpoint(Path(sys.argv[1]), 'fast', a.state_dict()); "
-            "print('torch._dynamo' in sys.modules)")
+            "a.act(o, False); print('torch._dynamo' in sys.modules)")
     done = subprocess.run([sys.executable, "-c", code, str(tmp_path / "fast.pt")], capture_output=True, text=True,
                           check=True)
     assert done.stdout.split() == ["False"]
