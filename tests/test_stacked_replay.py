@@ -42,6 +42,16 @@ def test_a_seed_that_stored_nothing_has_nothing_to_sample():
     assert rows[1].flatten().tolist() == [6.0] * 8
 
 
+def test_each_seed_samples_whole_rows_of_its_own():
+    replay = filled("cpu")  # seed 0 holds rows (30 | 3, 0) and (40 | 4, 0); seed 1 (1 | 0, -1), (41 | 4, -1) ...
+    first, rest = replay.sample(64, torch.Generator().manual_seed(0))
+    assert first.shape == (3, 64, 1) and rest.shape == (3, 64, 2)
+    held = [{(30, 3, 0), (40, 4, 0)}, {(1, 0, -1), (41, 4, -1)}, {(42, 4, -2), (12, 1, -2)}]
+    for k in range(3):
+        drawn = {tuple(int(x) for x in row) for row in torch.cat([first[k], rest[k]], dim=1).tolist()}
+        assert drawn == held[k]  # (64 draws from two rows: both drawn, and nothing else)
+
+
 def test_staging_on_a_cpu_hands_over_the_array_as_float32():
     staged = Staging(torch.device("cpu")).put(np.array([[1, 2]], np.float64))
     assert staged.dtype == torch.float32 and staged.tolist() == [[1.0, 2.0]]

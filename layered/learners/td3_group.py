@@ -5,7 +5,7 @@ a leading seed axis: every linear layer is one `[K, in, out]` weight (both criti
 applied to the K seeds' minibatches with one batched matrix product. The K seeds' losses are summed, so
 that one backward pass and one Adam step (elementwise) update each seed exactly as its own loss asks;
 seeds never mix.
-The replay buffers are one `[K, capacity, row]` tensor, sampled per seed in one gather. Acting takes
+The replay buffers are one `[K, capacity, row]` tensor, sampled per seed in one selection of rows. Acting takes
 one observation per seed, `[K, obs]`, and returns `[K, action]`.
 
 Bit-identity with K single learners is not promised (a batched product sums in another order), but
