@@ -213,6 +213,9 @@ def _parser() -> argparse.ArgumentParser:
     _plugin_option(dp, "besides those the run was trained with")
     rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
     rep.add_argument("runs", type=Path, nargs="+", help="run directories, or folders that hold them")
+    rep.add_argument("--unfinished", action="store_true",
+                     help="also report runs still training or stopped before their end, each at its last evaluation "
+                     "(as setups of their own, marked unfinished)")
     rep.add_argument("--out", type=Path, help="report directory (default runs/report-<time>)")
     rep.add_argument("--no-extra-evals", action="store_true",
                      help="draw only from what the runs hold; by default each run's missing threshold sweep (Fig. 2) "
@@ -481,13 +484,13 @@ def _report(args: argparse.Namespace) -> int:
     from layered.summary import find_runs, group
 
     try:
-        runs = find_runs(args.runs)
+        runs = find_runs(args.runs, args.unfinished)
     except FileNotFoundError as e:
         return _fail(str(e))
     if not args.no_extra_evals:
         from layered.run_evals import missing_figure_evals, run_figure_evals
 
-        todo = [(r.path, missing) for r in runs if (missing := missing_figure_evals(r.path))]
+        todo = [(r.path, missing) for r in runs if r.finished and (missing := missing_figure_evals(r.path))]
         for k, (path, missing) in enumerate(todo):
             print(f"[{k + 1}/{len(todo)}] {path}: evaluating {' and '.join(missing)}", file=sys.stderr)
             run_figure_evals(path, missing)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import re
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -196,7 +197,7 @@ def seeds_table(setups: Sequence[Any]) -> str:
     """Which runs make up each setup: the traceability of every number in the tables."""
     lines = ["| environment | setup | seed ids | run directories |", "|---|---|---|---|"]
     for s in setups:
-        dirs = ", ".join(str(r.path) for r in s.runs)
+        dirs = ", ".join(str(r.path) if r.finished else f"{r.path} ({r.stands})" for r in s.runs)
         lines.append(f"| {s.env} | {s.label} | {', '.join(str(r.seed) for r in s.runs)} | {dirs} |")
     return "\n".join(lines)
 
@@ -270,7 +271,7 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
 
 
 def _slug(setup: Any) -> str:
-    return f"{setup.env}-{setup.method}".replace(":", "-").replace("/", "-")
+    return re.sub(r"[^\w.-]+", "-", f"{setup.env}-{setup.method}").strip("-")
 
 
 def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str]:
@@ -315,6 +316,10 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
     parts = ["# Results", "",
              "Mean ± standard deviation over seeds of each run's final evaluation (last phase); "
              "AUC is the normalised area under the last phase's evaluation curve.", ""]
+    if any(not r.finished for s in setups for r in s.runs):
+        parts += ["Setups marked *(unfinished)* are runs still training or stopped before their end, each taken at "
+                  "its last evaluation (where that was is in [Runs](#runs)): their AUC and fresh-episode columns "
+                  "are n/a until they finish.", ""]
     if turn:
         parts += ["## Table 1: normalised AUC and average return", "", wide_table(turn, TABLE_1), "",
                   "## Table 2: action repetition and decisions per episode", "", wide_table(turn, TABLE_2), "",

@@ -1,4 +1,5 @@
-"""Reading finished run directories and aggregating the runs of one setup over seeds."""
+"""Reading run directories (finished ones, and where asked those still training or stopped before their end)
+and aggregating the runs of one setup over seeds."""
 
 from __future__ import annotations
 
@@ -7,21 +8,24 @@ import json
 import re
 import sys
 import tomllib
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from layered.report import count
+
 # The paper's methods first, in its column order; any other setup follows alphabetically.
 METHOD_ORDER = ["td3", "temporl", "tla-o", "tla-c", "td3-realtime", "tla-realtime"]
 
 
 @dataclass(frozen=True)
-class FinishedRun:
-    """One finished run: its setup, seed, final evaluation, and its evaluation curves over the last
-    phase and over the whole run (environment steps counted from the start of training)."""
+class Run:
+    """One run: its setup, seed, final evaluation, and its evaluation curves over the last phase and over
+    the whole run (environment steps counted from the start of training). A run not finished (still training,
+    or stopped before its end) is taken at its last evaluation, and `stands` says where that was."""
 
     path: Path
     env: str
@@ -33,44 +37,94 @@ class FinishedRun:
     total_curve: tuple[tuple[int, float], ...] = ()
     phase_starts: tuple[int, ...] = ()  # steps since training began at which phases 1, 2, ... started
     phases: tuple[dict[str, Any], ...] = ()  # each phase's results as `results.json` holds them, the last = `final`
+    stands: str = ""  # where an unfinished run's last evaluation was ("phase 0, step 75000"); "" once finished
+
+    @property
+    def finished(self) -> bool:
+        return not self.stands
 
     @property
     def method(self) -> str:
-        return self.label.rsplit("/", 1)[-1]
+        """The recipe's name; an unfinished run's is marked, so that it forms a setup of its own."""
+        name = self.label.rsplit("/", 1)[-1]
+        return name if self.finished else f"{name} (unfinished)"
 
 
 class BrokenRun(ValueError):
     """A run directory whose results cannot be read; the message names it and what is wrong."""
 
 
-def load_finished_run(path: Path) -> FinishedRun:
-    """The run in directory `path`; raises FileNotFoundError naming what is missing, BrokenRun naming
+def load_finished_run(path: Path) -> Run:
+    """The finished run in directory `path`; raises FileNotFoundError naming what is missing, BrokenRun naming
     what cannot be read."""
     results_file = path / "results.json"
     if not results_file.exists():
         raise FileNotFoundError(f"{path} is not a finished run (no results.json)")
+    return _readable(path, _read_finished_run)
+
+
+def load_unfinished_run(path: Path) -> Run:
+    """The run in directory `path` that has not finished (no results.json), at its last evaluation in
+    metrics.csv; raises BrokenRun where it cannot be read or has not evaluated yet."""
+    return _readable(path, _read_unfinished_run)
+
+
+def _readable(path: Path, read: Callable[[Path], Run]) -> Run:
+    """`read(path)`, what makes its files unreadable raised as BrokenRun naming the run."""
     try:
-        return _read_finished_run(path, results_file)
+        return read(path)
     except (OSError, ValueError, KeyError, IndexError, TypeError, tomllib.TOMLDecodeError) as e:
         raise BrokenRun(f"{path}: its results cannot be read ({e.__class__.__name__}: {e})") from None
 
 
-def _read_finished_run(path: Path, results_file: Path) -> FinishedRun:
-    results = json.loads(results_file.read_text())
+def _read_finished_run(path: Path) -> Run:
+    results = json.loads((path / "results.json").read_text())
     recipe = tomllib.loads((path / "recipe.toml").read_text())
     final = results["phases"][-1]
-    last_phase = str(final["phase"])
-    with (path / "metrics.csv").open() as f:
-        rows = list(csv.DictReader(f))
-    curve = tuple((int(r["step"]), float(r["return_mean"])) for r in rows if r["phase"] == last_phase)
-    label = results.get("label") or re.sub(r"-s\d+(-\d{8}-\d{6})?$", "", path.name)
-    return FinishedRun(
-        path=path, env=results["env"], label=label, seed=int(results.get("seed", recipe["train"]["seed"])),
-        realtime=any(layer.get("delay", 0) > 0 for layer in recipe["layers"]),
+    rows = _metrics(path)
+    return Run(
+        path=path, env=results["env"], label=results.get("label") or _label(path),
+        seed=int(results.get("seed", recipe["train"]["seed"])), realtime=_realtime(recipe),
         final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)},
-        curve=curve, total_curve=_total_curve(rows), phase_starts=_phase_starts(rows),
+        curve=_curve(rows, str(final["phase"])), total_curve=_total_curve(rows), phase_starts=_phase_starts(rows),
         phases=tuple(results["phases"]),
     )
+
+
+def _read_unfinished_run(path: Path) -> Run:
+    recipe = tomllib.loads((path / "recipe.toml").read_text())
+    rows = _metrics(path)
+    if not rows:
+        raise ValueError("metrics.csv has no evaluation yet")
+    last = rows[-1]
+    info = json.loads((path / "run.json").read_text()) if (path / "run.json").exists() else {}
+    final = {k: float(v) for k, v in last.items() if k not in ("phase", "learn") and v}
+    final["phase"] = int(last["phase"])
+    return Run(
+        path=path, env=recipe["env"]["id"], label=info.get("label") or _label(path), seed=int(recipe["train"]["seed"]),
+        realtime=_realtime(recipe), final=final, curve=_curve(rows, last["phase"]), total_curve=_total_curve(rows),
+        phase_starts=_phase_starts(rows), phases=({**final, "learn": last["learn"].split("+")},),
+        stands=f"phase {last['phase']}, step {last['step']}",
+    )
+
+
+def _metrics(path: Path) -> list[dict[str, str]]:
+    with (path / "metrics.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def _label(path: Path) -> str:
+    """The setup of a run that does not name it: its directory's name without the seed and time."""
+    return re.sub(r"-s\d+(-\d{8}-\d{6})?$", "", path.name)
+
+
+def _realtime(recipe: dict[str, Any]) -> bool:
+    return any(layer.get("delay", 0) > 0 for layer in recipe["layers"])
+
+
+def _curve(rows: Sequence[dict[str, str]], phase: str) -> tuple[tuple[int, float], ...]:
+    """Evaluation return against environment steps in `phase`."""
+    return tuple((int(r["step"]), float(r["return_mean"])) for r in rows if r["phase"] == phase)
 
 
 def _total_curve(rows: Sequence[dict[str, str]]) -> tuple[tuple[int, float], ...]:
@@ -100,7 +154,7 @@ class Setup:
 
     env: str
     label: str
-    runs: tuple[FinishedRun, ...]
+    runs: tuple[Run, ...]
 
     @property
     def method(self) -> str:
@@ -130,9 +184,9 @@ class Setup:
             returns.max(axis=0)
 
 
-def group(runs: Iterable[FinishedRun]) -> list[Setup]:
+def group(runs: Iterable[Run]) -> list[Setup]:
     """Runs grouped by (environment, method), in the paper's method order."""
-    by_key: dict[tuple[str, str], list[FinishedRun]] = {}
+    by_key: dict[tuple[str, str], list[Run]] = {}
     for run in runs:
         by_key.setdefault((run.env, run.method), []).append(run)
     setups = [Setup(env, rs[0].label, tuple(sorted(rs, key=lambda r: r.seed))) for (env, _), rs in by_key.items()]
@@ -144,18 +198,30 @@ def group(runs: Iterable[FinishedRun]) -> list[Setup]:
     return sorted(setups, key=order)
 
 
-def find_runs(paths: Sequence[Path]) -> list[FinishedRun]:
-    """Every finished run in `paths`, each a run directory or a folder holding run directories."""
-    found: list[FinishedRun] = []
+def find_runs(paths: Sequence[Path], unfinished: bool = False) -> list[Run]:
+    """Every finished run in `paths`, each a run directory or a folder holding run directories; with
+    `unfinished`, every run still training or stopped before its end too, at its last evaluation."""
+    found: list[Run] = []
     for path in paths:
-        dirs = [path] if (path / "results.json").exists() else sorted(p.parent for p in path.rglob("results.json"))
-        if not dirs:
-            raise FileNotFoundError(f"{path}: no finished runs (no results.json) in it")
-        for d in dirs:
+        dirs = _run_dirs(path, "results.json")
+        left = [d for d in _run_dirs(path, "metrics.csv") if not (d / "results.json").exists()
+                and (d / "recipe.toml").exists()]
+        if not dirs and not (unfinished and left):
+            hint = f"; {count(len(left), 'run')} in it not finished: --unfinished reports them" if left else ""
+            raise FileNotFoundError(f"{path}: no finished runs (no results.json) in it{hint}")
+        loads = [(d, load_finished_run) for d in dirs] + [(d, load_unfinished_run) for d in left if unfinished]
+        for d, load in sorted(loads, key=lambda item: item[0]):
             try:
-                found.append(load_finished_run(d))
+                found.append(load(d))
             except BrokenRun as e:
                 print(f"layered: warning: {e}; reporting the other runs", file=sys.stderr)
     if not found:
-        raise FileNotFoundError(f"no readable finished run in {', '.join(map(str, paths))}")
+        raise FileNotFoundError(f"no readable run in {', '.join(map(str, paths))}")
     return found
+
+
+def _run_dirs(path: Path, name: str) -> list[Path]:
+    """`path` if it holds the file `name`, else every folder under it that does."""
+    if (path / name).exists():
+        return [path]
+    return sorted(p.parent for p in path.rglob(name))

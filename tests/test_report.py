@@ -10,8 +10,10 @@ import pytest
 
 from layered import load_recipe
 from layered.report import _steps_axis
-from layered.summary import FinishedRun, Setup, find_runs, group
+from layered.summary import Run, Setup, find_runs, group
 from layered.runs import train
+
+from conftest import train_until_stopped
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
@@ -20,7 +22,7 @@ TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
 
 def run(label, seed, ret, auc, curve, env="Pendulum-v1", realtime=False):
     final = {"return_mean": ret, "auc": auc, "repetition": 0.5, "decisions": 200.0}
-    return FinishedRun(Path(f"/r/{label}-{seed}"), env, label, seed, realtime, final, tuple(curve))
+    return Run(Path(f"/r/{label}-{seed}"), env, label, seed, realtime, final, tuple(curve))
 
 
 def test_setup_statistics_are_mean_and_population_std_over_seeds():
@@ -59,8 +61,8 @@ def test_bands_are_clipped_to_the_return_bounds():
 def test_seeds_align_evaluation_by_evaluation_at_their_mean_step():
     a = run("p/tla-c", 0, 0, 0, [])
     s = Setup("Pendulum-v1", "p/tla-c", (
-        FinishedRun(a.path, a.env, a.label, 0, False, a.final, (), ((0, -900.0), (5001, -400.0), (10002, -200.0))),
-        FinishedRun(a.path, a.env, a.label, 1, False, a.final, (), ((0, -700.0), (5003, -200.0)))))
+        Run(a.path, a.env, a.label, 0, False, a.final, (), ((0, -900.0), (5001, -400.0), (10002, -200.0))),
+        Run(a.path, a.env, a.label, 1, False, a.final, (), ((0, -700.0), (5003, -200.0)))))
     steps, mean, std, _, _ = s.curve(whole_run=True)
     assert list(steps) == [0, 5002] and list(mean) == [-800, -300] and list(std) == [100, 100]
 
@@ -113,6 +115,43 @@ def test_report_without_extra_evaluations_runs_none(tmp_path):
     assert proc.returncode == 0 and not (tmp_path / "run" / "eval").exists()
 
 
+def test_an_unfinished_run_is_taken_at_its_last_evaluation_only_when_asked(tmp_path):
+    run_dir = tmp_path / "runs" / "group" / "seed3"
+    run_dir.mkdir(parents=True)
+    (run_dir / "recipe.toml").write_text('[env]\nid = "Hopper-v5"\n[train]\nseed = 3\n'
+                                         '[[layers]]\nname = "slow"\ndelay = 1\n')
+    (run_dir / "run.json").write_text(json.dumps({"label": "hopper/tla-realtime", "group": [3]}))
+    (run_dir / "metrics.csv").write_text("phase,learn,step,return_mean,repetition,critic_loss_slow\n"
+                                         "0,slow,0,100,0.5,\n0,slow,5000,300,0.5,2.5\n1,fast,0,280,0.4,\n"
+                                         "1,fast,5000,350,0.25,1.5\n")
+    with pytest.raises(FileNotFoundError, match="1 run in it not finished: --unfinished reports them"):
+        find_runs([tmp_path / "runs"])
+    (run_,) = find_runs([tmp_path / "runs"], unfinished=True)
+    assert not run_.finished and run_.stands == "phase 1, step 5000"
+    assert (run_.env, run_.label, run_.seed, run_.realtime) == ("Hopper-v5", "hopper/tla-realtime", 3, True)
+    assert run_.method == "tla-realtime (unfinished)"
+    assert run_.final == {"step": 5000.0, "return_mean": 350.0, "repetition": 0.25, "critic_loss_slow": 1.5,
+                          "phase": 1}
+    assert run_.curve == ((0, 280.0), (5000, 350.0)) and run_.phase_starts == (5000,)
+    (run_dir / "metrics.csv").write_text("phase,learn,step,return_mean\n")  # started, not yet evaluated
+    with pytest.raises(FileNotFoundError, match="no readable run"):
+        find_runs([tmp_path / "runs"], unfinished=True)
+
+
+def test_report_of_a_stopped_run_beside_a_finished_one(tmp_path, monkeypatch):
+    recipe = load_recipe(PENDULUM / "td3.toml", TINY)
+    train(recipe, tmp_path / "runs" / "td3-s0", max_steps=400, progress=False, label="pendulum/td3")
+    stopped = tmp_path / "runs" / "td3-s1"
+    train_until_stopped(monkeypatch, load_recipe(PENDULUM / "td3.toml", [*TINY, "train.seed=1"]), stopped, 1,
+                        max_steps=400, progress=False, label="pendulum/td3")
+    last = (stopped / "metrics.csv").read_text().splitlines()[-1].split(",")  # phase, learn, step, return_mean ...
+    proc = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(tmp_path / "runs"), "--unfinished",
+                           "--out", str(tmp_path / "report")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "return: td3 | return: td3 (unfinished)" in proc.stdout and f"{float(last[3]):.1f} (1 seed)" in proc.stdout
+    assert f"{stopped} (phase 0, step {last[2]})" in proc.stdout and "evaluating" not in proc.stderr
+
+
 def test_report_of_nothing_is_a_clear_error(tmp_path):
     command = [sys.executable, "-m", "layered.cli", "report", str(tmp_path)]
     proc = subprocess.run(command, capture_output=True, text=True)
@@ -144,7 +183,7 @@ def test_the_per_seed_table_shows_each_seed_and_its_earlier_phases(tmp_path):
         last = {"phase": 1, "learn": ["fast"], "return_mean": final + 1.0, "auc": 0.25 * (seed + 1),
                 "fresh_final_return_mean": final, "fresh_best_return_mean": best, "best_step": 5000 * seed,
                 "fresh_best_repetition": 0.5}
-        return FinishedRun(Path(f"/r/tla-{seed}"), "Hopper-v5", "hopper/tla-realtime", seed, True,
+        return Run(Path(f"/r/tla-{seed}"), "Hopper-v5", "hopper/tla-realtime", seed, True,
                            {k: v for k, v in last.items() if k != "learn"}, ((0, 1.0),), phases=(slow, last))
 
     setups = group([two_phases(0, 900.0, 300.0, 400.0), two_phases(1, 500.0, 700.0, 1000.0)])

@@ -267,7 +267,7 @@ class StackedReplay:
         self.sizes = torch.zeros(k, dtype=torch.long, device=device)
         self._next = torch.zeros(k, dtype=torch.long, device=device)
         self._seeds = torch.arange(k, device=device)
-        self._firsts = self._seeds[:, None] * capacity  # each seed's first row in the buffers as one [K * capacity, row]
+        self._firsts = self._seeds[:, None] * capacity  # each seed's first row in [K * capacity, row]
         self._staging = Staging(device)
         self._stores: dict[bool, GraphedStep[None]] | None = {} if captured and device.type == "cuda" else None
         self.stored = np.zeros(k, np.int64)  # rows added per seed, known on the host
