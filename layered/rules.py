@@ -47,6 +47,7 @@ class Layer:
     defer_penalty: float = 0.0
     deviation_penalty: float = 0.0
     learns_from_commits: bool = False  # decides under a committed gate, taking the executed action
+    sees_in_flight: bool = False  # beside each output in flight, the outputs of the layers it sees acting with it
     half_range: np.ndarray = field(init=False)  # half-width of each output entry, for the action penalty
 
     def __post_init__(self) -> None:
@@ -66,6 +67,7 @@ class Layer:
     def to_json(self) -> dict[str, Any]:
         """What an exported stack needs of the layer, as plain JSON values."""
         return {"name": self.name, "period": self.period, "delay": self.delay, "sees": list(self.sees),
+                "sees_in_flight": self.sees_in_flight,
                 "max_repeat": self.max_repeat, "low": [float(x) for x in self.low],
                 "high": [float(x) for x in self.high],
                 "combiner": None if self.combiner is None else self.combiner.to_json()}
@@ -76,7 +78,7 @@ class Layer:
         combiner = None if data["combiner"] is None else combiner_from_json(data["combiner"])
         return cls(data["name"], int(data["period"]), np.asarray(data["low"], np.float32),
                    np.asarray(data["high"], np.float32), combiner, tuple(data["sees"]), int(data["delay"]),
-                   int(data["max_repeat"]))
+                   int(data["max_repeat"]), sees_in_flight=bool(data.get("sees_in_flight", False)))
 
 
 @dataclass(frozen=True)
@@ -152,11 +154,13 @@ class Rules:
         """The bounds of what layer i sees (see `observation`), given the environment's observation bounds."""
         layer = self.layers[i]
         lows, highs = [np.ravel(obs_low)], [np.ravel(obs_high)]
-        for j in layer.sees:  # an output is zero before the first decision, so 0 is included
-            lows.append(np.minimum(self.layers[j].low[: self.action_dim], 0))
-            highs.append(np.maximum(self.layers[j].high[: self.action_dim], 0))
-        lows += [np.minimum(layer.low, 0)] * layer.delay  # its own outputs in flight
-        highs += [np.maximum(layer.high, 0)] * layer.delay
+        seen_lows = [np.minimum(self.layers[j].low[: self.action_dim], 0) for j in layer.sees]  # an output is zero
+        seen_highs = [np.maximum(self.layers[j].high[: self.action_dim], 0) for j in layer.sees]  # before it decides
+        lows += seen_lows
+        highs += seen_highs
+        for _ in range(layer.delay):  # its own outputs in flight, each with what will act beside it
+            lows += [np.minimum(layer.low, 0), *(seen_lows if layer.sees_in_flight else [])]
+            highs += [np.maximum(layer.high, 0), *(seen_highs if layer.sees_in_flight else [])]
         return np.concatenate(lows).astype(np.float32), np.concatenate(highs).astype(np.float32)
 
     def reset(self, rows: np.ndarray | None = None) -> None:
@@ -227,7 +231,8 @@ class Rules:
         effect when i's output takes effect (with delays, not necessarily the one held now); and, when
         it acts with a delay, its own outputs in flight (oldest first) as they will be executed: their
         action part is the contribution each will make when it lands, after thresholds and gates (zero
-        where a gate above commits)."""
+        where a gate above commits), each followed, with `sees_in_flight`, by the outputs of the slower
+        layers it names that will be in effect when it lands."""
         layer = self.layers[i]
         upcoming = self.upcoming(i)
         lands = upcoming + layer.delay * layer.period
@@ -238,6 +243,8 @@ class Rules:
             entry = self.inflight[i][:, k]
             outputs = [entry if j == i else self.in_effect(j, at) for j in range(len(self.layers))]
             parts += [self.walk(outputs).contributions[i], entry[:, self.action_dim:]]
+            if layer.sees_in_flight:
+                parts += [outputs[j][:, : self.action_dim] for j in layer.sees]
         return np.concatenate(parts, axis=1)
 
     def decide(self, i: int, outputs: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:

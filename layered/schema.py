@@ -90,6 +90,11 @@ class LayerConfig(Section):
     output before deciding again, as TempoRL's skip policy; its output gains that count."""
     sees: list[str] = ["obs"]
     """What the layer observes: `obs` and the names of slower layers whose held actions it sees."""
+    sees_in_flight: Flag | None = None
+    """With a delay: the layer also sees, beside each of its outputs in flight, the outputs of the slower
+    layers it sees that will act with it when it lands, so that it knows every action on its way to the
+    environment (the delayed problem is then Markov at every step; without it, a layer whose slower layer
+    decides between its own decisions does not see that layer's output acting now). Unset is false."""
     combine: str | None = None
     """How this layer merges with the layers below; defaults to `combine.kind`."""
     eval_threshold: float | None = Field(default=None, ge=0)

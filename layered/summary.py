@@ -216,7 +216,7 @@ def find_runs(paths: Sequence[Path], unfinished: bool = False) -> list[Run]:
             except BrokenRun as e:
                 print(f"layered: warning: {e}; reporting the other runs", file=sys.stderr)
     if not found:
-        raise FileNotFoundError(f"no readable run in {', '.join(map(str, paths))}")
+        raise FileNotFoundError(f"no readable {'' if unfinished else 'finished '}run in {', '.join(map(str, paths))}")
     return found
 
 

@@ -35,6 +35,8 @@ CASES = {
                                                    "only the layer right below a gate can learn from its commits"),
     "learning from commits with a delay": (["train", str(TLA_J), "layers.fast.learn_from_commits=true",
                                             "layers.fast.delay=1"], "it needs delay 0, max_repeat 1"),
+    "seeing beside outputs in flight without a delay": (["train", str(TLA_C), "layers.fast.sees_in_flight=true"],
+                                                        "layers[1].sees_in_flight"),
     "zero updates per decision": (["train", str(TLA_C), "layers.fast.updates=0"], "layers[1].updates"),
     "unknown plugin": (["train", str(TLA_C), "--plugin", "{tmp}/nope.py"], "plugin"),
     "zero steps": (["train", str(TLA_C), "--steps", "0"], "--steps: must be positive"),

@@ -19,10 +19,12 @@ VALUE = {f"{name}{k}": v for name, values in (("S", S), ("M", M), ("F", F)) for 
 VALUE["0"] = 0.0
 
 
-def realtime_stack(periods, delays, evaluation=False, threshold=None) -> Stack:
+def realtime_stack(periods, delays, evaluation=False, threshold=None, in_flight=False) -> Stack:
     names = [f"l{k}" for k in range(len(periods))]
     layers = [{"name": n, "period": p, "delay": d, "sees": ["obs", *names[:k]]}
               for k, (n, p, d) in enumerate(zip(names, periods, delays, strict=True))]
+    for layer in layers[1:] if in_flight else []:
+        layer["sees_in_flight"] = layer["delay"] > 0
     recipe = load_recipe({"env": {"id": "Pendulum-v1"}, "layers": layers})
     return Stack(recipe, OBS, ACT, evaluation=evaluation, threshold=threshold)
 
@@ -101,6 +103,44 @@ def test_every_layer_sees_the_slower_outputs_its_own_output_is_added_to(periods,
         while i is not None:
             obs = stack.observation(i, np.zeros(1, np.float32))
             views.append((t + delays[i] * periods[i], i, obs[1:1 + i].tolist()))
+            stack.decide(i, obs, np.array([series[i][counters[i]]], np.float32))
+            counters[i] += 1
+            i = stack.next_due(i + 1)
+        held.append([float(h[0]) for h in stack.held])
+        stack.tick()
+    checked = [(lands, i, view) for lands, i, view in views if lands < 40]
+    assert len(checked) > 30
+    for lands, i, view in checked:
+        assert view == pytest.approx(held[lands][:i]), (lands, i)
+
+
+def test_sees_in_flight_shows_the_slow_output_acting_beside_the_fast_one_in_flight():
+    """The paper's setting again: at odd steps the slow output acting now (beside the fast output in flight)
+    is not the one the fast layer's new output will be added to; `sees_in_flight` shows both."""
+    seen, executed = play(realtime_stack([2, 1], [1, 1], in_flight=True), 7)
+    fast = [slower + inflight for _, i, slower, inflight in seen if i == 1]  # S in effect at t + 1, F_t-1, S at t
+    assert fast == [values(*x) for x in (("0", "0", "0"), ("S0", "F0", "0"), ("S0", "F1", "S0"), ("S1", "F2", "S0"),
+                                         ("S1", "F3", "S1"), ("S2", "F4", "S1"), ("S2", "F5", "S2"))]
+    assert executed == sums("0", "F0", "S0+F1", "S0+F2", "S1+F3", "S1+F4", "S2+F5")  # as without it
+    assert [f[1] + f[2] for f in fast] == pytest.approx(executed)  # what acts at each step, as the fast layer sees it
+
+
+@pytest.mark.parametrize(("periods", "delays"), [
+    ([2, 1], [1, 1]), ([4, 1], [1, 1]), ([4, 2, 1], [1, 1, 1]), ([4, 1], [1, 3]), ([8, 2, 1], [1, 2, 1]),
+], ids=str)
+def test_with_sees_in_flight_a_layer_sees_what_acts_beside_each_of_its_outputs_in_flight(periods, delays):
+    """Beside each output in flight, the slower layers' outputs in effect when it lands: with its own
+    output, everything the environment will execute until its new output lands."""
+    stack = realtime_stack(periods, delays, in_flight=True)
+    rng = np.random.default_rng(1)
+    series = [list(rng.uniform(-0.5, 0.5, 64)) for _ in periods]
+    counters, views, held = [0] * len(periods), [], []
+    for t in range(40):
+        i = stack.next_due(0)
+        while i is not None:
+            obs = stack.observation(i, np.zeros(1, np.float32))
+            flight = obs[1 + i:].reshape(delays[i], 1 + (i if i else 0))  # per output in flight: its own, then beside
+            views += [(t + k * periods[i], i, flight[k, 1:].tolist()) for k in range(delays[i]) if i]
             stack.decide(i, obs, np.array([series[i][counters[i]]], np.float32))
             counters[i] += 1
             i = stack.next_due(i + 1)
