@@ -40,6 +40,9 @@ def _check_layers(recipe: Recipe) -> list[tuple[str, str]]:
                              f"layer {above.name!r} above it (layers are listed slowest first)"))
         problems += [(f"{where}.sees", f"{seen!r} is neither 'obs' nor a slower layer than {layer.name!r}")
                      for seen in layer.sees if seen != "obs" and seen not in names[:i]]
+        if layer.action_penalty_from is not None and not layer.delay:
+            problems.append((f"{where}.action_penalty_from", "without a delay an output acts from its decision on: "
+                             "remove the key, or give the layer a delay"))
         if layer.sees_in_flight and not (layer.delay and set(layer.sees) - {"obs"}):
             problems.append((f"{where}.sees_in_flight", "it shows the slower layers in `sees` beside the layer's "
                              "outputs in flight: it needs a delay and a slower layer in `sees`"))

@@ -48,6 +48,7 @@ class Layer:
     deviation_penalty: float = 0.0
     learns_from_commits: bool = False  # decides under a committed gate, taking the executed action
     sees_in_flight: bool = False  # beside each output in flight, the outputs of the layers it sees acting with it
+    penalty_from_decision: bool = False  # with a delay: the action penalty on the newest output, from its decision
     half_range: np.ndarray = field(init=False)  # half-width of each output entry, for the action penalty
 
     def __post_init__(self) -> None:
@@ -384,7 +385,9 @@ class Rules:
                 proposed = np.where(defers[:, None], self.held[i][:, : self.action_dim], proposed)
                 deferring = deferring | defers
             if layer.action_penalty:
-                size = _mean(np.abs(composition.contributions[i]) / layer.half_range[: self.action_dim])
+                paid = self.inflight[i][:, -1, : self.action_dim] if layer.penalty_from_decision and layer.delay \
+                    else composition.contributions[i]
+                size = _mean(np.abs(paid) / layer.half_range[: self.action_dim])
                 r = np.where(reached, r - layer.action_penalty * size.astype(np.float64), r)
             if layer.deviation_penalty and _any(deferring):
                 deviation = _mean(np.abs(composition.action - proposed) / self.env_half)

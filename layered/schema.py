@@ -107,6 +107,10 @@ class LayerConfig(Section):
     """`reward`: the penalty is in the environment's reward (the paper's); `reward-per-step`: in
     units of its return range per step ((best - worst return) / episode steps), so one value
     weighs the same against tasks of other reward scales."""
+    action_penalty_from: Literal["landing", "decision"] | None = None
+    """With a delay, when the penalty on an output is paid: while it acts (`landing`, unset), or from the
+    step it is chosen, while it is in flight (`decision`), so that the transition of the decision that
+    chose it pays it, as the paper authors' real-time code charges the fast action."""
     defer_reward_scale: tuple[float, float] = (2.0, 0.5)
     """Gate layers: factors on rewards r <= 0 and r > 0 earned while the layers below act."""
     defer_penalty: float = Field(default=0.0, ge=0)

@@ -143,6 +143,25 @@ def test_rewards_action_penalty_is_mean_abs_action_over_the_layers_bound():
     assert rewards == pytest.approx({0: -3.0, 1: -3.0 - 1.0 / 4.0})  # |a| / (2 x max action 2)
 
 
+@pytest.mark.parametrize(("paid_from", "paid"), [("landing", [0.0, 0.5, 1.5]), ("decision", [0.5, 1.5, 1.0])])
+def test_a_delayed_action_penalty_is_paid_while_the_output_acts_or_from_its_decision(paid_from, paid):
+    """Fast outputs 0.5, 1.5, 1.0 at steps 0-2, each landing one step later: by default step t pays for the
+    output acting (none at step 0), with `action_penalty_from = "decision"` for the one chosen at t."""
+    recipe = stack_recipe([2, 1])
+    slow = recipe.layers[0].model_copy(update={"delay": 1})
+    fast = recipe.layers[1].model_copy(update={"delay": 1, "action_scale": 2.0, "action_penalty": 1.0,
+                                               "action_penalty_from": paid_from})
+    stack = Stack(recipe.model_copy(update={"layers": [slow, fast]}), OBS, ACT)
+    shares = []
+    for output in (0.5, 1.5, 1.0):
+        for i in (0, 1) if stack.rules.due(0)[0] else (1,):
+            stack.decide(i, stack.observation(i, np.zeros(3, np.float32)), np.array([output if i else 0.0]))
+        shares.append(stack.layer_rewards(-3.0, stack.compose()))
+        stack.tick()
+    assert [s[1] for s in shares] == pytest.approx([-3.0 - p / 4.0 for p in paid])  # |a| / (2 x max action 2)
+    assert [s[0] for s in shares] == pytest.approx([-3.0] * 3)
+
+
 @pytest.mark.parametrize(("env", "per_step"), [("Pendulum-v1", 1550 / 200), ("dmc:cartpole-balance", 1000 / 1000),
                                                ("InvertedDoublePendulum-v5", 9400 / 1000)])
 def test_an_action_penalty_per_step_of_reward_range_scales_with_the_task(env, per_step):
