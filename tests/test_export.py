@@ -24,8 +24,8 @@ STACKS = {
     "jointly gated (td3-gate learner)": ("pendulum/tla-joint.toml", []),
     "repeats (TempoRL)": ("pendulum/temporl.toml", []),
     "real-time delays, MuJoCo": ("inverted-double-pendulum/tla-realtime.toml", []),
-    "real-time delays, what acts beside each output in flight seen": ("inverted-double-pendulum/tla-realtime.toml",
-                                                                       ["layers.fast.sees_in_flight=true"]),
+    "real-time delays, without what acts beside the output in flight": ("inverted-double-pendulum/tla-realtime.toml",
+                                                                         ["layers.fast.sees_in_flight=false"]),
     "per-dimension threshold, MuJoCo": ("hopper/tla-realtime.toml", ["combine.per_dimension=true"]),
 }
 
