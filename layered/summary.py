@@ -204,8 +204,7 @@ def find_runs(paths: Sequence[Path], unfinished: bool = False) -> list[Run]:
     found: list[Run] = []
     for path in paths:
         dirs = _run_dirs(path, "results.json")
-        left = [d for d in _run_dirs(path, "metrics.csv") if not (d / "results.json").exists()
-                and (d / "recipe.toml").exists()]
+        left = _unfinished_dirs(path) if unfinished or not dirs else []  # (looked for only when wanted or named)
         if not dirs and not (unfinished and left):
             hint = f"; {count(len(left), 'run')} in it not finished: --unfinished reports them" if left else ""
             raise FileNotFoundError(f"{path}: no finished runs (no results.json) in it{hint}")
@@ -218,6 +217,12 @@ def find_runs(paths: Sequence[Path], unfinished: bool = False) -> list[Run]:
     if not found:
         raise FileNotFoundError(f"no readable {'' if unfinished else 'finished '}run in {', '.join(map(str, paths))}")
     return found
+
+
+def _unfinished_dirs(path: Path) -> list[Path]:
+    """The run directories at or under `path` that log evaluations but hold no results yet."""
+    return [d for d in _run_dirs(path, "metrics.csv")
+            if not (d / "results.json").exists() and (d / "recipe.toml").exists()]
 
 
 def _run_dirs(path: Path, name: str) -> list[Path]:

@@ -57,6 +57,28 @@ def sums(*rows):
     return [pytest.approx(sum(VALUE[label] for label in row.split("+"))) for row in rows]
 
 
+def assert_views_are_what_acts(stack: Stack, periods, seed: int, views_of) -> None:
+    """Play random outputs for 40 steps; at each decision of layer i, `views_of(t, i, obs)` names what it saw of
+    the slower layers for some later steps, as (step, values): each must be their outputs in effect at that step."""
+    rng = np.random.default_rng(seed)
+    series = [list(rng.uniform(-0.5, 0.5, 64)) for _ in periods]
+    counters, views, held = [0] * len(periods), [], []
+    for t in range(40):
+        i = stack.next_due(0)
+        while i is not None:
+            obs = stack.observation(i, np.zeros(1, np.float32))
+            views += [(step, i, view) for step, view in views_of(t, i, obs)]
+            stack.decide(i, obs, np.array([series[i][counters[i]]], np.float32))
+            counters[i] += 1
+            i = stack.next_due(i + 1)
+        held.append([float(h[0]) for h in stack.held])
+        stack.tick()
+    checked = [(step, i, view) for step, i, view in views if step < 40]
+    assert len(checked) > 30
+    for step, i, view in checked:
+        assert view == pytest.approx(held[step][:i]), (step, i)
+
+
 def test_periods_2_1_each_output_landing_one_of_its_own_periods_later():
     """The paper's setting: slow output chosen at 2k acts at 2k+2 and 2k+3; fast output chosen at t acts at t+1."""
     seen, executed = play(realtime_stack([2, 1], [1, 1]), 7)
@@ -94,24 +116,8 @@ def test_three_layers_4_2_1_each_delayed_one_decision():
 def test_every_layer_sees_the_slower_outputs_its_own_output_is_added_to(periods, delays):
     """Whenever the slower layers' outputs land no sooner than the observer's, what a layer sees of
     them at a decision is exactly what acts beside its output when that output lands."""
-    stack = realtime_stack(periods, delays)
-    rng = np.random.default_rng(0)
-    series = [list(rng.uniform(-0.5, 0.5, 64)) for _ in periods]
-    counters, views, held = [0] * len(periods), [], []
-    for t in range(40):
-        i = stack.next_due(0)
-        while i is not None:
-            obs = stack.observation(i, np.zeros(1, np.float32))
-            views.append((t + delays[i] * periods[i], i, obs[1:1 + i].tolist()))
-            stack.decide(i, obs, np.array([series[i][counters[i]]], np.float32))
-            counters[i] += 1
-            i = stack.next_due(i + 1)
-        held.append([float(h[0]) for h in stack.held])
-        stack.tick()
-    checked = [(lands, i, view) for lands, i, view in views if lands < 40]
-    assert len(checked) > 30
-    for lands, i, view in checked:
-        assert view == pytest.approx(held[lands][:i]), (lands, i)
+    assert_views_are_what_acts(realtime_stack(periods, delays), periods, 0,
+                               lambda t, i, obs: [(t + delays[i] * periods[i], obs[1:1 + i].tolist())])
 
 
 def test_sees_in_flight_shows_the_slow_output_acting_beside_the_fast_one_in_flight():
@@ -131,25 +137,11 @@ def test_sees_in_flight_shows_the_slow_output_acting_beside_the_fast_one_in_flig
 def test_with_sees_in_flight_a_layer_sees_what_acts_beside_each_of_its_outputs_in_flight(periods, delays):
     """Beside each output in flight, the slower layers' outputs in effect when it lands: with its own
     output, everything the environment will execute until its new output lands."""
-    stack = realtime_stack(periods, delays, in_flight=True)
-    rng = np.random.default_rng(1)
-    series = [list(rng.uniform(-0.5, 0.5, 64)) for _ in periods]
-    counters, views, held = [0] * len(periods), [], []
-    for t in range(40):
-        i = stack.next_due(0)
-        while i is not None:
-            obs = stack.observation(i, np.zeros(1, np.float32))
-            flight = obs[1 + i:].reshape(delays[i], 1 + (i if i else 0))  # per output in flight: its own, then beside
-            views += [(t + k * periods[i], i, flight[k, 1:].tolist()) for k in range(delays[i]) if i]
-            stack.decide(i, obs, np.array([series[i][counters[i]]], np.float32))
-            counters[i] += 1
-            i = stack.next_due(i + 1)
-        held.append([float(h[0]) for h in stack.held])
-        stack.tick()
-    checked = [(lands, i, view) for lands, i, view in views if lands < 40]
-    assert len(checked) > 30
-    for lands, i, view in checked:
-        assert view == pytest.approx(held[lands][:i]), (lands, i)
+    def beside_in_flight(t, i, obs):
+        flight = obs[1 + i:].reshape(delays[i], 1 + i)  # per output in flight: its own, then what acts beside it
+        return [(t + k * periods[i], flight[k, 1:].tolist()) for k in range(delays[i]) if i]
+
+    assert_views_are_what_acts(realtime_stack(periods, delays, in_flight=True), periods, 1, beside_in_flight)
 
 
 def test_at_evaluation_an_output_in_flight_shows_what_the_threshold_lets_through():
