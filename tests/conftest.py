@@ -113,6 +113,28 @@ def passed(moment: float) -> bool:
     return time.monotonic() >= moment
 
 
+def _written_at(path: Path) -> int | None:
+    try:
+        return path.stat().st_mtime_ns
+    except FileNotFoundError:
+        return None
+
+
+def between_checkpoints(checkpoint: Path, interval: float, rng) -> Callable[[], bool]:
+    """A random moment within `interval` seconds after `checkpoint` is next written: a kill there lands between
+    two checkpoints after the process has saved progress of its own, so a run outlasts a given number of kills
+    however fast the machine (wall-clock moments alone let a fast machine finish first)."""
+    before, delay, seen = _written_at(checkpoint), rng.uniform(0.0, interval), None
+
+    def ready() -> bool:
+        nonlocal seen
+        if seen is None and _written_at(checkpoint) != before:
+            seen = time.monotonic()
+        return seen is not None and time.monotonic() - seen >= delay
+
+    return ready
+
+
 def play_through_agent_view(env, next_output: Callable[[str], Any]) -> dict[str, list]:
     """Step an agent view (reset) episode after episode, each due layer given `next_output(name)`, until that is
     None; the transitions each layer was handed, in order."""

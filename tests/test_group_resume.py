@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import assert_same_run, kill_when, passed
+from conftest import assert_same_run, between_checkpoints, kill_when
 
 from layered.rundir import RunDirError
 from layered.cli import main
@@ -223,16 +223,20 @@ def writing(directory: Path) -> bool:
 
 
 def test_a_group_killed_at_random_moments_and_mid_checkpoint_resumes_byte_identical(tmp_path):
-    """SIGKILL at random moments and once as soon as a checkpoint write is under way; resumed each time,
-    the group ends with the files of one never killed; SIGINT and SIGTERM then stop it in one line."""
-    run = ["train", ROOT / "recipes/inverted-double-pendulum/tla-realtime.toml", "--seeds", "0,1", "--steps", 600,
-           *TINY, "train.checkpoint_every=50", "--threads", 1]
+    """SIGKILL at random moments between checkpoints and once as soon as a checkpoint write is under way;
+    resumed each time, the group ends with the files of one never killed; SIGINT and SIGTERM then stop it in
+    one line."""
+    steps, every = 600, 40
+    run = ["train", ROOT / "recipes/inverted-double-pendulum/tla-realtime.toml", "--seeds", "0,1", "--steps", steps,
+           *TINY, f"train.checkpoint_every={every}", "--threads", 1]
     whole, out = tmp_path / "whole", tmp_path / "killed"
+    began = time.monotonic()
     assert layered(*run, "--out", whole).wait() == 0
+    interval = (time.monotonic() - began) * every / steps  # at most one checkpoint's time on this machine
     proc, rng, kills = layered(*run, "--out", out), random.Random(3), 0
     for k in range(4):
-        ready = partial(writing, out) if k == 1 else partial(passed, time.monotonic() + rng.uniform(1.0, 4.0))
-        if not kill_when(proc, ready, timeout=10.0):
+        ready = partial(writing, out) if k == 1 else between_checkpoints(out / GROUP_CHECKPOINT, interval, rng)
+        if not kill_when(proc, ready, timeout=30.0 + 10 * interval):
             break
         kills += 1
         started = (out / "seed0" / "run.json").exists()

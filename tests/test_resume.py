@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_same_run, kill_when, passed, stop_at_episode_end, train_until_stopped
+from conftest import assert_same_run, between_checkpoints, kill_when, passed, stop_at_episode_end, train_until_stopped
 
 from layered import load_recipe
 from layered.checkpoint import CheckpointError, load_checkpoint, previous, save_checkpoint
@@ -186,19 +186,20 @@ def writing(run_dir: Path) -> bool:
 
 
 def test_killed_with_sigkill_at_random_moments_and_resumed_ends_byte_identical(tmp_path):
-    """The promise: SIGKILL at random moments, and once as soon as a checkpoint write is under way (the
-    write may finish first: whether the kill landed mid-write is printed, not asserted); resume each
-    time; the same files as a run never killed."""
-    whole = tmp_path / "whole"
+    """The promise: SIGKILL at random moments between checkpoints, and once as soon as a checkpoint write is
+    under way (the write may finish first: whether the kill landed mid-write is printed, not asserted);
+    resume each time; the same files as a run never killed."""
+    whole, began = tmp_path / "whole", time.monotonic()
     assert layered("train", *CLI_RUN, "--out", whole).wait() == 0
+    interval = (time.monotonic() - began) * 150 / 1500  # at most one checkpoint's time (eval.every) here
     out, rng = tmp_path / "killed", random.Random(7)
     proc, kills, mid_write = layered("train", *CLI_RUN, "--out", out), 0, False
     for k in range(4):
         if k == 1:  # as soon as a checkpoint is being written
             ready = partial(writing, out)
         else:
-            ready = partial(passed, time.monotonic() + rng.uniform(0.5, 3.0))
-        if not kill_when(proc, ready, timeout=8.0):
+            ready = between_checkpoints(out / "checkpoints" / "run.pt", interval, rng)
+        if not kill_when(proc, ready, timeout=30.0 + 10 * interval):
             break
         kills += 1
         mid_write |= k == 1 and ready()
