@@ -125,7 +125,8 @@ def _parser() -> argparse.ArgumentParser:
     rs.add_argument("--threads", type=_positive, help="torch threads (use 1 per process when running several)")
     rs.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
                     help="continue with a changed setting (a layer's learner settings, action_penalty, updates), "
-                    "e.g. --set layers.fast.learner.lr=1e-4 after a divergence; recorded in run.json")
+                    "e.g. --set layers.fast.learner.lr=1e-4 after a divergence; in every seed of a group; recorded "
+                    "in run.json")
     ev = sub.add_parser("eval", help="evaluate a trained run directory")
     ev.add_argument("run_dir", type=Path, help="run directory of a trained run")
     ev.add_argument("--episodes", type=_positive, help="episodes (default: the recipe's eval.episodes)")
@@ -301,15 +302,14 @@ def _resume_group(args: argparse.Namespace, directory: Path) -> int:
     from layered.group import resume_group
     from layered.group_state import group_info, seed_dirs
 
-    if args.settings:
-        return _fail("--set: a group resumes with the settings it was started with")
     info = group_info(directory)
     load_plugins(info.plugins)
     if all((out / "results.json").exists() for out in seed_dirs(directory, info.group)):
         print(f"the group in {directory} has finished; nothing to resume", file=sys.stderr)
         return 0
     print(f"resuming the group of seeds {list(info.group)} in {directory}", file=sys.stderr)
-    return _group_finished(directory, info.group, resume_group(directory, max_steps=args.steps))
+    return _group_finished(directory, info.group, resume_group(directory, max_steps=args.steps,
+                                                               settings=args.settings))
 
 
 def _finished(out: Path) -> int:

@@ -45,6 +45,7 @@ from layered.group_state import (
     clear_group,
     group_info,
     group_snapshot,
+    has_group_checkpoint,
     load_group,
     save_group,
     seed_dirs,
@@ -65,7 +66,16 @@ from layered.report import count
 from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
 from layered.rules import Rules
-from layered.runs import unavailable_settings, warmup_warnings
+from layered.runs import (
+    Change,
+    changed_from,
+    changed_recipe,
+    misfit,
+    record,
+    unavailable_settings,
+    warmup_warnings,
+    way_on,
+)
 from layered.runstate import LoopState, recipe_digest
 from layered.stack import Stack
 from layered.trainer import (
@@ -141,12 +151,15 @@ def _checkpoint_problem(env_id: str) -> str | None:
 
 
 def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max_steps: int | None = None,
-                progress: bool = True, plugins: Sequence[str] = (), resume: bool = False) -> list[list[dict[str, Any]]]:
+                progress: bool = True, plugins: Sequence[str] = (), resume: bool = False,
+                changes: Sequence[Change] = ()) -> list[list[dict[str, Any]]]:
     """Train the recipes (one recipe's seeds: they differ in `train.seed` alone) as one group, seed k into
     `outs[k]` (the group's directory's `seed<k>` folders); the results rows of every phase, per seed.
 
-    With `resume`, the group continues from its last checkpoint (one stopped before its first starts over).
-    Raises Stopped when SIGINT or SIGTERM stopped it, after a checkpoint at the step under way.
+    With `resume`, the group continues from its last checkpoint (one stopped before its first starts over);
+    with `changes` too (one per seed), `recipes` are the seeds' own with some settings changed, recorded in
+    each seed's run.json at the step the group continues from. Raises Stopped when SIGINT or SIGTERM stopped
+    it, after a checkpoint at the step under way.
     """
     check_group(recipes[0])
     directory = outs[0].parent
@@ -167,37 +180,32 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
     with ExitStack() as locks:
         for out in outs:
             locks.enter_context(writing(out))
-        saved = load_group(directory, numbers, digests, max_steps) if resume else None
+        before = [changed_from(out, change) for out, change in zip(outs, changes or [None] * len(outs), strict=True)]
+        saved = load_group(directory, numbers, digests, max_steps, before) if resume else None
+        if saved is None and changes:
+            raise RunDirError(f"{directory}: the group has no checkpoint to continue from with other settings; train "
+                              "it again with --force and the settings in the recipe or on the command line")
         if saved is None:
             clear_group(directory)
         else:
             print(f"layered: the group continues from its checkpoint in phase {saved.states[0].phase} at step "
                   f"{saved.loop.step}", file=sys.stderr)
-        resumed_at = None if saved is None else (saved.states[0].phase, saved.loop.step)
-        seeds = []
-        for k, (recipe, out, learners) in enumerate(zip(recipes, outs, singles, strict=True)):
-            prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume=saved is not None)
-            seed = Seed(recipe, out, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
-                        CsvLog(out / "episodes.csv", EPISODE_FIELDS),
-                        EventLog(out / "tensorboard", resumed_at) if recipe.log.tensorboard else None)
-            if saved is None:
-                keep_start_weights(recipe, learners, out / "checkpoints")
-                seed.metrics.start()
-                seed.episodes.start()
-            else:
-                seed.state = saved.states[k]
-                seed.metrics.truncate(seed.state.log_sizes["metrics"])
-                seed.episodes.truncate(seed.state.log_sizes["episodes"])
-            seeds.append(seed)
+        seeds = [_open_seed(recipe, out, learners, info, resume, saved, k)
+                 for k, (recipe, out, learners) in enumerate(zip(recipes, outs, singles, strict=True))]
         stop = StopRequest(until="this step")
         writer = CheckpointWriter(beside=writes_beside(next(iter(singles[0].values())).device))
         group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop,
                       ReplayJournal(replay_folder(directory / GROUP_CHECKPOINT)),
                       BestJournal(best_folder(directory / GROUP_CHECKPOINT)), writer)
         del singles
+        if saved is not None:
+            _take_up(group, saved, changes, before)
         try:
             with stop.installed(), writer:  # (the last checkpoint written before results, or a stop, are reported)
                 group.train(saved)
+        except Diverged as e:
+            way = way_on(directory, recipes[0], e.layer, has_group_checkpoint(directory))
+            raise Diverged(f"{e}; {way}", e.layer) from None
         finally:
             for seed in seeds:
                 seed.metrics.close()
@@ -210,15 +218,57 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
     return [seed.state.rows for seed in seeds]
 
 
-def resume_group(directory: Path, max_steps: int | None = None, progress: bool = True) -> list[list[dict[str, Any]]]:
-    """Continue the stopped group in `directory` from its last checkpoint, with the recipes it was started with."""
+def _open_seed(recipe: Recipe, out: Path, learners: dict[str, Any], info: RunInfo, resume: bool,
+               saved: GroupCheckpoint | None, k: int) -> Seed:
+    """Seed k's run directory and logs, new or (from `saved`) as the group's checkpoint left them."""
+    if saved is None:  # (with a checkpoint of the group, its seeds' files are kept as they are)
+        prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)
+    resumed_at = None if saved is None else (saved.states[k].phase, saved.loop.step)
+    seed = Seed(recipe, out, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
+                CsvLog(out / "episodes.csv", EPISODE_FIELDS),
+                EventLog(out / "tensorboard", resumed_at) if recipe.log.tensorboard else None)
+    if saved is None:
+        keep_start_weights(recipe, learners, out / "checkpoints")
+        seed.metrics.start()
+        seed.episodes.start()
+    else:
+        seed.state = saved.states[k]  # (its logs are cut back to where it stood once the group is restored)
+    return seed
+
+
+def _take_up(group: Group, saved: GroupCheckpoint, changes: Sequence[Change], before: Sequence[str | None]) -> None:
+    """Restore `group` from `saved` and cut its seeds' logs back to where they stood; with `changes` (its
+    learners built with changed settings), record them in each seed's run.json, or refuse them in one line,
+    with nothing written, where the saved networks do not fit them."""
+    try:
+        group.restore(saved)
+    except (RuntimeError, KeyError, ValueError) as e:
+        if not changes:
+            raise
+        raise misfit(group.directory, e) from None
+    for seed in group.seeds:
+        seed.metrics.truncate(seed.state.log_sizes["metrics"])
+        seed.episodes.truncate(seed.state.log_sizes["episodes"])
+    if changes:
+        for seed, change, digest in zip(group.seeds, changes, before, strict=True):
+            record(seed.out, seed.recipe, change, digest, seed.state.phase, saved.loop.step)
+
+
+def resume_group(directory: Path, max_steps: int | None = None, progress: bool = True,
+                 settings: Sequence[str] = ()) -> list[list[dict[str, Any]]]:
+    """Continue the stopped group in `directory` from its last checkpoint, with the recipes it was started with
+    or with the `key=value` `settings` changed in every seed (what `layered.runs.resume` lets a run change)."""
     info = group_info(directory)
     if max_steps is not None and max_steps != info.max_steps:
         raise RunDirError(f"{directory}: the group was started with {steps_option(info.max_steps)}, not "
                           f"{steps_option(max_steps)}")
     outs = seed_dirs(directory, info.group)
-    recipes = [load_recipe(out / "recipe.toml") for out in outs]
-    return train_group(recipes, outs, info.label, info.max_steps, progress, info.plugins, resume=True)
+    if not settings:
+        recipes = [load_recipe(out / "recipe.toml") for out in outs]
+        return train_group(recipes, outs, info.label, info.max_steps, progress, info.plugins, resume=True)
+    recipes, changes = zip(*(changed_recipe(out, settings, where=directory) for out in outs), strict=True)
+    return train_group(recipes, outs, info.label, info.max_steps, progress, info.plugins, resume=True,
+                       changes=changes)
 
 
 def _stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]) -> dict[str, GroupLearner]:
@@ -242,16 +292,18 @@ class Group:
         self.rows = len(seeds)
         self.names = self.recipe.layer_names()
 
+    def restore(self, saved: GroupCheckpoint) -> None:
+        """Take up the learners, replay, best weights and generator of `saved` (its loops, `train` takes up)."""
+        for name, learner in self.learners.items():
+            learner.load_resume_state(saved.learners[name])
+        self.journal.restore(saved.replays, replays_of(self.learners))
+        self.best.load(saved.best, [seed.state for seed in self.seeds])
+        torch.set_rng_state(saved.torch_rng)
+
     def train(self, saved: GroupCheckpoint | None = None) -> None:
-        """Every phase of the training order (from `saved`'s, where it stands), each seed's results row
-        recorded at its end."""
+        """Every phase of the training order (from `saved`'s, where it stands, once `restore`d from it), each
+        seed's results row recorded at its end."""
         start = -1 if saved is None else saved.states[0].phase  # (the states go on to later phases)
-        if saved is not None:
-            for name, learner in self.learners.items():
-                learner.load_resume_state(saved.learners[name])
-            self.journal.restore(saved.replays, replays_of(self.learners))
-            self.best.load(saved.best, [seed.state for seed in self.seeds])
-            torch.set_rng_state(saved.torch_rng)
         for p, phase in enumerate(phases_of(self.recipe)):
             if p < start:
                 continue  # its results rows are in the seeds' states
@@ -322,13 +374,13 @@ class Group:
                 for i, rows in decided.items():
                     if i in pending:
                         pending[i].output[rows] = rules.decided[i][rows]
-                        _check_finite(rules.decided[i][rows], "action", f"layer {self.names[i]!r}", p, loop.step)
+                        _check_finite(rules.decided[i][rows], "action", self.names[i], p, loop.step)
                 composition = rules.compose()
                 envs.step_async(composition.action, every, restart=True)  # (an episode that ends starts again)
                 for i in learn:  # queued while the environments step (on a GPU, or with env.workers)
                     self._update(self.names[i], decided[i] & (decisions[i] > warmups[i]), losses)
                 reward, terminated, truncated = envs.step_wait()
-                _check_finite(envs.last, "observation", "the environment", p, loop.step)
+                _check_finite(envs.last, "observation", None, p, loop.step)
                 shares = rules.layer_rewards(reward, composition)
                 rules.tick()
                 ended = terminated | truncated
@@ -537,7 +589,7 @@ def _read_back(losses: dict[str, PendingLosses], seeds: Sequence[Seed], step: in
         for n in TD3Group.loss_names:
             computed = np.stack([masks.get(n, none) for _, masks in read]) & took
             values = np.stack([update.get(n, zeros) for update, _ in read])
-            _check_finite(values[computed], "loss", f"layer {name!r}", seeds[0].state.phase, step)
+            _check_finite(values[computed], "loss", name, seeds[0].state.phase, step)
             columns[f"{n}_loss"] = (values, computed)
         for k, seed in enumerate(seeds):
             updates = np.flatnonzero(took[:, k])
@@ -547,10 +599,11 @@ def _read_back(losses: dict[str, PendingLosses], seeds: Sequence[Seed], step: in
             seed.state.losses[name] += [dict(zip(columns, stats, strict=True)) for stats in zip(*per_loss, strict=True)]
 
 
-def _check_finite(values: np.ndarray, what: str, who: str, phase: int, step: int) -> None:
+def _check_finite(values: np.ndarray, what: str, layer: str | None, phase: int, step: int) -> None:
+    """Stop the group (`Diverged`, naming `layer`, None for the environment) at a non-finite value."""
     if not np.all(np.isfinite(values)):
-        raise Diverged(f"{who} met a non-finite {what} in phase {phase} at step {step} of a group; train the group "
-                       "again with --force and a lower learning rate, or check the environment")
+        who = "the environment" if layer is None else f"layer {layer!r}"
+        raise Diverged(f"{who} met a non-finite {what} in phase {phase} at step {step} of a group", layer)
 
 
 def group_recipes(path: str | Path, seeds: Sequence[int], overrides: Sequence[str]) -> list[Recipe]:

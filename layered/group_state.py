@@ -143,10 +143,12 @@ def save_group(directory: Path, snapshot: dict[str, Any]) -> None:
     save_checkpoint(directory / GROUP_CHECKPOINT, "group", snapshot, keep_previous=True)
 
 
-def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps: int | None
-               ) -> GroupCheckpoint | None:
+def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps: int | None,
+               before: Sequence[str | None] = ()) -> GroupCheckpoint | None:
     """The group's newest usable checkpoint (one whose replay segments and best weights are all there, undamaged),
-    or None if it has none; refused, in one line, when it was taken for other seeds, recipes or `--steps`."""
+    or None if it has none; refused, in one line, when it was taken for other seeds, recipes or `--steps`.
+    A seed's checkpoint may also have been taken with the recipe of digest `before[k]` (its settings changed
+    since, see `layered.runs.changed_from`)."""
     path = directory / GROUP_CHECKPOINT
 
     def check(saved: dict[str, Any]) -> None:
@@ -161,7 +163,9 @@ def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
         return None
     if saved["seeds"] != list(seeds):
         raise CheckpointError(f"{directory}: the group's checkpoint is of seeds {saved['seeds']}, not {list(seeds)}")
-    changed = [seed for seed, a, b in zip(seeds, saved["recipe_digests"], digests, strict=True) if a != b]
+    before = list(before) or [None] * len(seeds)
+    changed = [seed for seed, a, b, c in zip(seeds, saved["recipe_digests"], digests, before, strict=True)
+               if a not in (b, c)]
     if changed:
         raise CheckpointError(f"{directory}: the recipe of seeds {changed} differs from the one the group's "
                               "checkpoint was taken with")

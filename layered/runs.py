@@ -112,25 +112,21 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
     max_steps = info.max_steps
     prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # so that a run killed early resumes
     checkpoint = out / "checkpoints" / "run.pt"
-    changes = read_run_info(out).changes if resume else ()
-    changed_from = recipe_digest(resolved(change.before)) if change else changes[-1]["from"] if changes else None
+    previous = changed_from(out, change) if resume else None
     journal = ReplayJournal(replay_folder(checkpoint))
     try:
-        state = load_state(checkpoint, learners, resolved(recipe), max_steps, journal, changed_from)
+        state = load_state(checkpoint, learners, resolved(recipe), max_steps, journal, previous)
     except CheckpointError:
         raise
     except (RuntimeError, KeyError, ValueError) as e:  # a changed setting the networks cannot take
         if change is None:
             raise
-        raise RunDirError(f"{out}: the checkpoint does not fit the changed settings "
-                          f"({str(e).strip().splitlines()[0][:200]})") from None
+        raise misfit(out, e) from None
     if change is not None:
         if state is None:
             raise RunDirError(f"{out}: the run has no checkpoint to continue from with other settings; train it "
                               "again with --force and the settings in the recipe or on the command line")
-        record_change(out, tomli_w.dumps(resolved(recipe)), {
-            "phase": state.phase, "step": state.step, "set": list(change.settings), "from": changed_from,
-            "differences": list(change.differences)})
+        record(out, recipe, change, previous, state.phase, state.step)
     resumed_at = None if state is None else (state.phase, state.step)
     run = Training(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
               CsvLog(out / "episodes.csv", EPISODE_FIELDS), checkpoint, max_steps, progress, StopRequest(), journal,
@@ -146,7 +142,7 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
     try:
         train_phases(run, state, out)
     except Diverged as e:
-        raise Diverged(f"{e}; {_way_on(out, recipe, e.layer)}", e.layer) from None
+        raise Diverged(f"{e}; {way_on(out, recipe, e.layer, has_progress(out))}", e.layer) from None
     finally:
         run.metrics.close()
         run.episodes.close()
@@ -156,13 +152,14 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
     return state.rows
 
 
-def _way_on(out: Path, recipe: Recipe, layer: str | None) -> str:
-    """What to do after a divergence: from the last checkpoint if there is one, with a lower learning rate."""
+def way_on(out: Path, recipe: Recipe, layer: str | None, checkpointed: bool) -> str:
+    """What to do after a divergence in the run (or group) in `out`: from its last checkpoint, if it has one
+    (`checkpointed`), with a lower learning rate."""
     if layer is None:
         return "check the environment"
     config = recipe.learner_config(recipe.layer_names().index(layer))
     lower = f"layers.{layer}.learner.lr={getattr(config, 'lr', 3e-4) / 3:.3g}"
-    if has_progress(out):
+    if checkpointed:
         return f"the last checkpoint is intact: continue from it with a lower learning rate, `layered resume {out} " \
                f"--set {lower}`"
     return f"no checkpoint was taken before it: train again with --force and a lower learning rate ({lower})"
@@ -184,17 +181,46 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
     if max_steps is not None and max_steps != info.max_steps:
         raise RunDirError(f"{run_dir}: the run was started with {steps_option(info.max_steps)}, not "
                           f"{steps_option(max_steps)}")
-    recipe = load_recipe(run_dir / "recipe.toml")
-    change = None
-    if settings:
-        before, recipe = recipe, load_recipe(run_dir / "recipe.toml", settings)
-        differences = recipe_differences(resolved(before), resolved(recipe))
-        if not differences:
-            raise RunDirError(f"{run_dir}: --set {' '.join(settings)} changes nothing")
-        fixed = [d.split(":")[0] for d in differences if not CHANGEABLE.match(d.split(":")[0])]
-        if fixed:
-            raise RunDirError(f"{run_dir}: a resumed run may change a layer's learner settings (not its kind), "
-                              f"action_penalty and updates, not {', '.join(fixed)}")
-        change = Change(before, tuple(settings), tuple(differences))
+    recipe, change = changed_recipe(run_dir, settings) if settings else (load_recipe(run_dir / "recipe.toml"), None)
     return train(recipe, run_dir, info.max_steps, progress, info.label, resume=True, plugins=info.plugins,
                  change=change)
+
+
+def changed_recipe(run_dir: Path, settings: Sequence[str], where: Path | None = None) -> tuple[Recipe, Change]:
+    """The recipe of the run in `run_dir` with the `key=value` `settings` changed, and the change; refused (naming
+    `where`, default the run) when they change nothing or what a resumed run may not change (see CHANGEABLE)."""
+    where = where or run_dir
+    before, recipe = load_recipe(run_dir / "recipe.toml"), load_recipe(run_dir / "recipe.toml", settings)
+    differences = recipe_differences(resolved(before), resolved(recipe))
+    if not differences:
+        raise RunDirError(f"{where}: --set {' '.join(settings)} changes nothing")
+    fixed = [d.split(":")[0] for d in differences if not CHANGEABLE.match(d.split(":")[0])]
+    if fixed:
+        raise RunDirError(f"{where}: a resumed run may change a layer's learner settings (not its kind), "
+                          f"action_penalty and updates, not {', '.join(fixed)}")
+    return recipe, Change(before, tuple(settings), tuple(differences))
+
+
+def misfit(where: Path, error: Exception) -> RunDirError:
+    """The error for a checkpoint that the learners, built with changed settings, could not load."""
+    return RunDirError(f"{where}: the checkpoint does not fit the changed settings "
+                       f"({str(error).strip().splitlines()[0][:200]})")
+
+
+def changed_from(run_dir: Path, change: Change | None) -> str | None:
+    """The digest of the recipe that the run's checkpoints may have been taken with besides its own: the one
+    before `change` (being made now), or before the last change recorded in run.json (one made after its
+    newest checkpoint)."""
+    if change is not None:
+        return recipe_digest(resolved(change.before))
+    if not (run_dir / "run.json").exists():
+        return None
+    changes = read_run_info(run_dir).changes
+    return changes[-1]["from"] if changes else None
+
+
+def record(run_dir: Path, recipe: Recipe, change: Change, from_digest: str | None, phase: int, step: int) -> None:
+    """Make the changed `recipe` the run's, recording `change` in run.json as applying from `phase` and `step`."""
+    record_change(run_dir, tomli_w.dumps(resolved(recipe)), {
+        "phase": phase, "step": step, "set": list(change.settings), "from": from_digest,
+        "differences": list(change.differences)})

@@ -3,6 +3,7 @@ it resumes to the very files of a group that never stopped."""
 
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -163,7 +164,7 @@ def test_a_stopped_group_is_refused_a_new_start_and_other_steps_and_force_starts
     assert "holds a stopped group; continue it with `layered resume" in capsys.readouterr().err
     with pytest.raises(RunDirError, match="--steps 200, not --steps 100"):
         resume_group(tmp_path / "g", max_steps=100)
-    assert main(["resume", str(tmp_path / "g"), "--set", "learner.lr=0.001"]) == 2
+    assert main(["resume", str(tmp_path / "g"), "--set", "env.id=Hopper-v5"]) == 2
     assert group_dir(tmp_path / "g") == group_dir(tmp_path / "g" / "seed1") == tmp_path / "g"
     assert main([*command, "--force"]) == 0
     assert not (tmp_path / "g" / GROUP_CHECKPOINT).exists()
@@ -269,3 +270,59 @@ def test_an_environment_that_cannot_be_checkpointed_is_refused_before_a_group_st
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "env.id" in err[0] and "recent holds a deque" in err[0] and "layered sweep" in err[0]
     assert not out.exists()
+
+
+def test_a_diverged_group_resumes_with_a_lower_learning_rate_recorded_in_every_seed(tmp_path, monkeypatch, capsys):
+    """A non-finite loss stops the group, naming the way on: its last checkpoint, with `--set` a lower learning
+    rate; what a run may not change, what changes nothing and what the networks cannot take are refused with
+    nothing written; the change is recorded in each seed's run.json and recipe, and taken by the stacked
+    learners (their weights end unlike the unchanged group's); a group stopped before its next checkpoint
+    resumes from the one taken before the change."""
+    from layered.cli import EXIT_DIVERGED
+    from layered.learners.td3_group import TD3Group
+    from layered.recipe import load_recipe
+    from layered.rundir import read_run_info
+
+    out = tmp_path / "g"
+    command = ["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", "0,1", "--steps", "300", *TINY,
+               "train.checkpoint_every=50", "--out", str(out)]
+    original, calls = TD3Group.update, []
+
+    def update(self, rows=None):
+        calls.append(1)
+        losses = original(self, rows)
+        if len(calls) == 150:  # (the update of step 190: read back at the checkpoint of step 200)
+            losses["critic"] = (torch.full_like(losses["critic"][0], float("nan")), losses["critic"][1])
+        return losses
+
+    monkeypatch.setattr(TD3Group, "update", update)
+    assert main(command) == EXIT_DIVERGED
+    monkeypatch.undo()
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err == ("layered: diverged: layer 'fast' met a non-finite loss in phase 0 at step 200 of a group; the last "
+                   "checkpoint is intact: continue from it with a lower learning rate, "
+                   f"`layered resume {out} --set layers.fast.learner.lr=0.0001`")
+    untouched = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    for setting, why in (("env.id=Hopper-v5", "not env.id"), ("layers.fast.learner.lr=3e-4", "changes nothing"),
+                         ("layers.fast.learner.hidden=[8]", "does not fit")):
+        with pytest.raises(RunDirError, match=why):
+            resume_group(out, progress=False, settings=[setting])
+        assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == untouched, setting
+
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    monkeypatch.setattr(Group, "train", lambda self, saved: (_ for _ in ()).throw(KeyboardInterrupt))
+    # stopped at once with the change recorded, before a checkpoint of its own
+    assert main(["resume", str(out), "--set", "layers.fast.learner.lr=1e-4"]) == 130
+    monkeypatch.undo()
+    assert main(["resume", str(out)]) == 0
+    assert "continues from its checkpoint in phase 0 at step 150" in capsys.readouterr().err
+    assert main(["resume", str(copy)]) == 0
+    for seed in (0, 1):
+        info = read_run_info(out / f"seed{seed}")
+        assert [(c["phase"], c["step"], c["set"], c["differences"]) for c in info.changes] == [
+            (0, 150, ["layers.fast.learner.lr=1e-4"], ["layers[0].learner.lr: 0.0003 -> 0.0001"])]
+        assert load_recipe(out / f"seed{seed}" / "recipe.toml").learner_config(0).lr == 1e-4
+        lowered, kept = (load_checkpoint(d / f"seed{seed}" / "checkpoints" / "fast.pt", "fast") for d in (out, copy))
+        assert {g["lr"] for g in lowered["actor_opt"]["param_groups"]} == {1e-4}
+        assert not torch.equal(lowered["actor"]["net.0.weight"], kept["actor"]["net.0.weight"])
