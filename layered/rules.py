@@ -48,6 +48,7 @@ class Layer:
     deviation_penalty: float = 0.0
     learns_from_commits: bool = False  # decides under a committed gate, taking the executed action
     sees_in_flight: bool = False  # beside each output in flight, the outputs of the layers it sees acting with it
+    sees_executed: bool = False  # each output in flight shown as the action executed when it lands, not its part
     penalty_from_decision: bool = False  # with a delay: the action penalty on the newest output, from its decision
     half_range: np.ndarray = field(init=False)  # half-width of each output entry, for the action penalty
 
@@ -68,7 +69,7 @@ class Layer:
     def to_json(self) -> dict[str, Any]:
         """What an exported stack needs of the layer, as plain JSON values."""
         return {"name": self.name, "period": self.period, "delay": self.delay, "sees": list(self.sees),
-                "sees_in_flight": self.sees_in_flight,
+                "sees_in_flight": self.sees_in_flight, "sees_executed": self.sees_executed,
                 "max_repeat": self.max_repeat, "low": [float(x) for x in self.low],
                 "high": [float(x) for x in self.high],
                 "combiner": None if self.combiner is None else self.combiner.to_json()}
@@ -79,7 +80,8 @@ class Layer:
         combiner = None if data["combiner"] is None else combiner_from_json(data["combiner"])
         return cls(data["name"], int(data["period"]), np.asarray(data["low"], np.float32),
                    np.asarray(data["high"], np.float32), combiner, tuple(data["sees"]), int(data["delay"]),
-                   int(data["max_repeat"]), sees_in_flight=bool(data.get("sees_in_flight", False)))
+                   int(data["max_repeat"]), sees_in_flight=bool(data.get("sees_in_flight", False)),
+                   sees_executed=bool(data.get("sees_executed", False)))
 
 
 @dataclass(frozen=True)
@@ -159,9 +161,12 @@ class Rules:
         seen_highs = [np.maximum(self.layers[j].high[: self.action_dim], 0) for j in layer.sees]  # before it decides
         lows += seen_lows
         highs += seen_highs
+        own_low, own_high = layer.low.copy(), layer.high.copy()
+        if layer.sees_executed:  # (an output in flight shown as the executed action)
+            own_low[: self.action_dim], own_high[: self.action_dim] = self.low, self.high
         for _ in range(layer.delay):  # its own outputs in flight, each with what will act beside it
-            lows += [np.minimum(layer.low, 0), *(seen_lows if layer.sees_in_flight else [])]
-            highs += [np.maximum(layer.high, 0), *(seen_highs if layer.sees_in_flight else [])]
+            lows += [np.minimum(own_low, 0), *(seen_lows if layer.sees_in_flight else [])]
+            highs += [np.maximum(own_high, 0), *(seen_highs if layer.sees_in_flight else [])]
         return np.concatenate(lows).astype(np.float32), np.concatenate(highs).astype(np.float32)
 
     def reset(self, rows: np.ndarray | None = None) -> None:
@@ -232,8 +237,9 @@ class Rules:
         effect when i's output takes effect (with delays, not necessarily the one held now); and, when
         it acts with a delay, its own outputs in flight (oldest first) as they will be executed: their
         action part is the contribution each will make when it lands, after thresholds and gates (zero
-        where a gate above commits), each followed, with `sees_in_flight`, by the outputs of the slower
-        layers it names that will be in effect when it lands."""
+        where a gate above commits), or with `sees_executed` the action the environment will execute then
+        (with the other layers' outputs as far as they are decided), each followed, with `sees_in_flight`,
+        by the outputs of the slower layers it names that will be in effect when it lands."""
         layer = self.layers[i]
         upcoming = self.upcoming(i)
         lands = upcoming + layer.delay * layer.period
@@ -243,7 +249,8 @@ class Rules:
             at = upcoming + k * layer.period
             entry = self.inflight[i][:, k]
             outputs = [entry if j == i else self.in_effect(j, at) for j in range(len(self.layers))]
-            parts += [self.walk(outputs).contributions[i], entry[:, self.action_dim:]]
+            composed = self.walk(outputs)
+            parts += [composed.action if layer.sees_executed else composed.contributions[i], entry[:, self.action_dim:]]
             if layer.sees_in_flight:
                 parts += [outputs[j][:, : self.action_dim] for j in layer.sees]
         return np.concatenate(parts, axis=1)

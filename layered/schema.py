@@ -95,6 +95,11 @@ class LayerConfig(Section):
     layers it sees that will act with it when it lands, so that it knows every action on its way to the
     environment (the delayed problem is then Markov at every step; without it, a layer whose slower layer
     decides between its own decisions does not see that layer's output acting now). Unset is false."""
+    sees_executed: Flag | None = None
+    """With a delay: the layer sees each of its outputs in flight as the action the environment will execute
+    when it lands (with the other layers' outputs for that step, as far as they are decided), not as its own
+    part of it: a slow layer then knows the faster layers' corrections on their way, as the paper authors'
+    real-time code shows every layer the executed action. Alone in a stack it sees the same. Unset is false."""
     combine: str | None = None
     """How this layer merges with the layers below; defaults to `combine.kind`."""
     eval_threshold: float | None = Field(default=None, ge=0)

@@ -131,7 +131,7 @@ class Stack:
                     defer_reward_scale=cfg.defer_reward_scale, defer_penalty=cfg.defer_penalty,
                     deviation_penalty=cfg.deviation_penalty,
                     learns_from_commits=cfg.learn_from_commits and not evaluation,
-                    sees_in_flight=bool(cfg.sees_in_flight),
+                    sees_in_flight=bool(cfg.sees_in_flight), sees_executed=bool(cfg.sees_executed),
                     penalty_from_decision=cfg.action_penalty_from == "decision"),
                 layout=layout,
                 action_space=Box(low, high, dtype=np.float32),

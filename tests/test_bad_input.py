@@ -37,6 +37,8 @@ CASES = {
                                             "layers.fast.delay=1"], "it needs delay 0, max_repeat 1"),
     "seeing beside outputs in flight without a delay": (["train", str(TLA_C), "layers.fast.sees_in_flight=true"],
                                                         "layers[1].sees_in_flight"),
+    "seeing outputs in flight as executed without a delay": (["train", str(TLA_C), "layers.fast.sees_executed=true"],
+                                                             "layers[1].sees_executed"),
     "a penalty from the decision without a delay": (["train", str(TLA_C), "layers.fast.action_penalty_from=decision"],
                                                     "layers[1].action_penalty_from"),
     "zero updates per decision": (["train", str(TLA_C), "layers.fast.updates=0"], "layers[1].updates"),

@@ -26,6 +26,8 @@ STACKS = {
     "real-time delays, MuJoCo": ("inverted-double-pendulum/tla-realtime.toml", []),
     "real-time delays, without what acts beside the output in flight": ("inverted-double-pendulum/tla-realtime.toml",
                                                                          ["layers.fast.sees_in_flight=false"]),
+    "real-time delays, outputs in flight seen as executed": ("inverted-double-pendulum/tla-realtime.toml",
+                                                             ["layers.slow.sees_executed=true"]),
     "per-dimension threshold, MuJoCo": ("hopper/tla-realtime.toml", ["combine.per_dimension=true"]),
 }
 

@@ -19,12 +19,14 @@ VALUE = {f"{name}{k}": v for name, values in (("S", S), ("M", M), ("F", F)) for 
 VALUE["0"] = 0.0
 
 
-def realtime_stack(periods, delays, evaluation=False, threshold=None, in_flight=False) -> Stack:
+def realtime_stack(periods, delays, evaluation=False, threshold=None, in_flight=False, executed=False) -> Stack:
     names = [f"l{k}" for k in range(len(periods))]
     layers = [{"name": n, "period": p, "delay": d, "sees": ["obs", *names[:k]]}
               for k, (n, p, d) in enumerate(zip(names, periods, delays, strict=True))]
     for layer in layers[1:] if in_flight else []:
         layer["sees_in_flight"] = layer["delay"] > 0
+    for layer in layers if executed else []:
+        layer["sees_executed"] = True
     recipe = load_recipe({"env": {"id": "Pendulum-v1"}, "layers": layers})
     return Stack(recipe, OBS, ACT, evaluation=evaluation, threshold=threshold)
 
@@ -142,6 +144,38 @@ def test_with_sees_in_flight_a_layer_sees_what_acts_beside_each_of_its_outputs_i
         return [(t + k * periods[i], flight[k, 1:].tolist()) for k in range(delays[i]) if i]
 
     assert_views_are_what_acts(realtime_stack(periods, delays, in_flight=True), periods, 1, beside_in_flight)
+
+
+def test_sees_executed_shows_the_slow_layer_the_action_executed_as_its_output_lands():
+    """The paper's setting: at its decision the slow layer sees, for its output landing now, the action the
+    environment executes now (with the fast correction chosen a step before), as the authors' code shows it."""
+    seen, executed = play(realtime_stack([2, 1], [1, 1], executed=True), 7)
+    slow = [(t, inflight) for t, i, _, inflight in seen if i == 0]
+    assert slow == [(0, values("0")), (2, sums("S0+F1")), (4, sums("S1+F3")), (6, sums("S2+F5"))]
+    assert executed == sums("0", "F0", "S0+F1", "S0+F2", "S1+F3", "S1+F4", "S2+F5")  # as without it
+
+
+@pytest.mark.parametrize("periods", [[2, 1], [4, 1], [4, 2, 1], [8, 2, 1]], ids=str)
+def test_with_sees_executed_and_a_delay_of_one_every_layer_sees_the_action_executed_at_its_decision(periods):
+    """With every layer delayed one decision, the output a layer has in flight at a decision lands at that
+    step: it sees the action executed then, whatever the periods."""
+    stack = realtime_stack(periods, [1] * len(periods), executed=True)
+    seen, executed = play(stack, 12, outputs=[S * 3, F] if len(periods) == 2 else [S * 3, M * 3, F])
+    assert len(seen) > 12
+    for t, _, _, inflight in seen:
+        assert inflight == [pytest.approx(executed[t])], t
+
+
+@pytest.mark.parametrize(("executed", "bound"), [(False, 4.0), (True, 2.0)])
+def test_an_output_in_flight_seen_as_executed_is_bounded_by_the_environments_range(executed, bound):
+    """A fast layer of twice the environment's range (2) sees its outputs in flight within its own range, or,
+    seen as the executed actions, within the environment's."""
+    recipe = load_recipe({"env": {"id": "Pendulum-v1"}, "layers": [
+        {"name": "slow", "period": 2, "delay": 1},
+        {"name": "fast", "period": 1, "delay": 1, "sees": ["obs", "slow"], "action_scale": 2.0,
+         "sees_executed": executed}]})
+    low, high = Stack(recipe, OBS, ACT).rules.observation_bounds(1, OBS.low, OBS.high)
+    assert (low.tolist(), high.tolist()) == ([-1.0, -2.0, -bound], [1.0, 2.0, bound])  # obs, slow, fast in flight
 
 
 def test_at_evaluation_an_output_in_flight_shows_what_the_threshold_lets_through():

@@ -45,6 +45,7 @@ def decide_by_next_due(rules, obs, policy):
     ([2, 1], "gate", {"learn_from_commits": [False, True], "deviation_penalty": [1.0, 1.0], "defer_penalty": [0.5, 0]}),
     ([4, 1], "residual-clip", {"delay": [1, 1], "action_penalty": [0.0, 1.0]}),
     ([4, 2, 1], "residual-clip", {"delay": [1, 2, 1], "sees_in_flight": [False, True, True]}),
+    ([4, 2, 1], "residual-clip", {"delay": [1, 1, 1], "sees_executed": [True, True, True]}),
     ([2, 1], "residual-clip", {"max_repeat": [3, 1]}),
     ([4, 2, 1], ["gate", "gate", "residual-clip"], {"learn_from_commits": [False, False, True]}),
 ])
