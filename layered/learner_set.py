@@ -42,19 +42,24 @@ def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None) -> 
     return learners
 
 
+SEED = "{seed}"
+"""In a layer's `weights` path, the run's seed: each seed of a group or sweep starts from its own file."""
+
+
 def start_from_weights(recipe: Recipe, learners: dict[str, Learner]) -> None:
-    """Load each layer's `weights` checkpoint into its learner; a file that is missing, unreadable,
-    of another layer or of other network sizes is refused, naming the layer."""
+    """Load each layer's `weights` checkpoint (`{seed}` in its path: the recipe's seed) into its learner; a file
+    that is missing, unreadable, of another layer or of other network sizes is refused, naming the layer."""
     problems = []
     for i, layer in enumerate(recipe.layers):
         if layer.weights is None:
             continue
+        path = Path(layer.weights.replace(SEED, str(recipe.train.seed)))
         try:
-            learners[layer.name].load_state_dict(load_checkpoint(Path(layer.weights), layer.name))
+            learners[layer.name].load_state_dict(load_checkpoint(path, layer.name))
         except CheckpointError as e:
             problems.append((f"layers[{i}].weights", str(e)))
         except (RuntimeError, KeyError, ValueError) as e:
-            problems.append((f"layers[{i}].weights", f"{layer.weights}: does not fit layer {layer.name!r}'s "
+            problems.append((f"layers[{i}].weights", f"{path}: does not fit layer {layer.name!r}'s "
                              f"learner ({str(e).strip().splitlines()[0]})"))
     if problems:
         raise RecipeError("recipe", problems)

@@ -136,7 +136,9 @@ class LayerConfig(Section):
     weights: str | None = None
     """A checkpoint the layer starts from instead of new networks: another run's
     `checkpoints/<name>.best.pt` or `<name>.pt` (a path relative to the recipe file that sets it).
-    The run keeps a copy, so a layer that only acts here needs no phase of its own."""
+    `{seed}` in it stands for the run's seed, so that each seed of a group or a sweep starts from its
+    own (e.g. `runs/rt/tla/seed{seed}/checkpoints/slow.best.pt`). The run keeps a copy, so a layer
+    that only acts here needs no phase of its own."""
     learner: dict[str, Any] = {}
     """Learner settings for this layer, over the recipe's `[learner]` table."""
 

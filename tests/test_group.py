@@ -219,3 +219,30 @@ def test_each_seed_reads_back_the_losses_of_the_updates_it_took_part_in():
     updates[2][0]["actor"][1] = float("inf")
     with pytest.raises(Diverged, match="layer 'fast' met a non-finite loss in phase 0 at step 7"):
         read(updates)
+
+
+def test_each_seed_of_a_group_starts_from_its_own_weights_named_by_seed(tmp_path, capsys):
+    """`{seed}` in a layer's `weights` is each seed's own number: a fast phase trained as one group over each
+    seed's slow layer; a seed whose file is missing is refused, naming its path, before anything is written."""
+    import torch
+
+    from layered.checkpoint import load_checkpoint
+
+    small = ["learner.hidden=[32, 32]", "learner.batch_size=32", *TINY]
+    slow = tmp_path / "slow"
+    assert main(["train", str(ROOT / "recipes/pendulum/tla-c.toml"), "--seeds", "0,1", "--steps", "300", *small,
+                 "train.order=explicit", 'train.phases=[{learn=["slow"]}]', "--out", str(slow)]) == 0
+    fast = ["train", str(ROOT / "recipes/pendulum/tla-c.toml"), "--steps", "300", *small, "train.order=explicit",
+            'train.phases=[{learn=["fast"],active=["slow","fast"]}]',
+            f"layers.slow.weights={slow}/seed{{seed}}/checkpoints/slow.best.pt"]
+    assert main([*fast, "--seeds", "0,1", "--out", str(tmp_path / "fast")]) == 0
+    kept = [load_checkpoint(tmp_path / "fast" / f"seed{s}" / "checkpoints" / "slow.best.pt", "slow")["actor"]
+            for s in (0, 1)]
+    sources = [load_checkpoint(slow / f"seed{s}" / "checkpoints" / "slow.best.pt", "slow")["actor"] for s in (0, 1)]
+    for own, source, other in zip(kept, sources, reversed(sources), strict=True):
+        assert all(torch.equal(own[k], source[k]) for k in source)
+        assert not all(torch.equal(own[k], other[k]) for k in source)
+    capsys.readouterr()
+    assert main([*fast, "--seeds", "1,2", "--out", str(tmp_path / "missing")]) == 2
+    assert f"layers[0].weights: {slow}/seed2/checkpoints/slow.best.pt" in capsys.readouterr().err
+    assert not (tmp_path / "missing").exists()
