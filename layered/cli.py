@@ -263,7 +263,7 @@ def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[s
     check_group(recipes[0])
     source = recipe_path(args.recipe)
     out = args.out or Path("runs") / f"{source.stem}-group-{time.strftime('%Y%m%d-%H%M%S')}"
-    args.out = None  # a group is not resumed seed by seed
+    args.out = out  # (stopped at once, it is resumed from here)
     outs = [out / f"seed{seed}" for seed in args.seeds]
     for run in outs:
         if args.force and run.is_dir():

@@ -326,3 +326,21 @@ def test_a_diverged_group_resumes_with_a_lower_learning_rate_recorded_in_every_s
         lowered, kept = (load_checkpoint(d / f"seed{seed}" / "checkpoints" / "fast.pt", "fast") for d in (out, copy))
         assert {g["lr"] for g in lowered["actor_opt"]["param_groups"]} == {1e-4}
         assert not torch.equal(lowered["actor"]["net.0.weight"], kept["actor"]["net.0.weight"])
+
+
+def test_a_group_stopped_at_once_while_writing_its_results_says_how_to_resume_it(tmp_path, monkeypatch, capsys):
+    """A second signal (here as the results are written, past the last step) stops a group at once: its last
+    line names `layered resume` on the group's directory, and the group resumes from its checkpoint."""
+    out = tmp_path / "g"
+
+    def interrupted(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(group_module, "write_results", interrupted)
+    assert main(["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", "0,1", "--steps", "200", *TINY,
+                 "--out", str(out)]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"layered: stopped at once; continue from the last checkpoint with: layered resume {out}")
+    monkeypatch.undo()
+    assert main(["resume", str(out)]) == 0
+    assert all((out / f"seed{seed}" / "results.json").exists() for seed in (0, 1))
