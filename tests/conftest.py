@@ -108,11 +108,6 @@ def kill_when(proc: subprocess.Popen, ready: Callable[[], bool], timeout: float 
     return False
 
 
-def passed(moment: float) -> bool:
-    """Whether the monotonic clock has passed `moment`."""
-    return time.monotonic() >= moment
-
-
 def _written_at(path: Path) -> int | None:
     try:
         return path.stat().st_mtime_ns

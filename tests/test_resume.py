@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_same_run, between_checkpoints, kill_when, passed, stop_at_episode_end, train_until_stopped
+from conftest import assert_same_run, between_checkpoints, kill_when, stop_at_episode_end, train_until_stopped
 
 from layered import load_recipe
 from layered.checkpoint import CheckpointError, load_checkpoint, previous, save_checkpoint
@@ -270,8 +270,9 @@ def test_twenty_random_faults_kill_damage_and_contention_end_byte_identical(tmp_
     or a second writer started while one runs (refused in one line, the first goes on); then the
     run is finished and compared with one never disturbed."""
     run = [*CLI_RUN[:-4], "--steps", 12000, "--threads", 1]  # long enough for 20 faults
-    whole = tmp_path / "whole"
+    whole, began = tmp_path / "whole", time.monotonic()
     assert layered("train", *run, "--out", whole).wait() == 0
+    interval = (time.monotonic() - began) * 150 / 12000  # at most one checkpoint's time (eval.every) here
     out, rng = tmp_path / "faults", random.Random(11)
 
     def start() -> subprocess.Popen:
@@ -298,11 +299,9 @@ def test_twenty_random_faults_kill_damage_and_contention_end_byte_identical(tmp_
                 errors = [line for line in err.splitlines() if line.startswith("layered:")]
                 assert second.returncode == 2 and len(errors) == 1 and "is being written by" in errors[0], err
                 faults.append(fault)
-            ready = partial(passed, time.monotonic() + rng.uniform(0.5, 2.0))
-        else:
-            ready = partial(writing, out) if fault == "kill mid-write" else \
-                partial(passed, time.monotonic() + rng.uniform(2.0, 8.0))
-        if kill_when(proc, ready, timeout=15.0):
+        ready = partial(writing, out) if fault == "kill mid-write" else \
+            between_checkpoints(out / "checkpoints" / "run.pt", interval, rng)
+        if kill_when(proc, ready, timeout=30.0 + 10 * interval):
             faults.append(fault)
         else:
             break  # the run finished early: too few faults, which the count below catches
