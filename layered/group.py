@@ -180,7 +180,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
     with ExitStack() as locks:
         for out in outs:
             locks.enter_context(writing(out))
-        before = [changed_from(out, change) for out, change in zip(outs, changes or [None] * len(outs), strict=True)]
+        before = [changed_from(out, changes[k] if changes else None) for k, out in enumerate(outs)]
         saved = load_group(directory, numbers, digests, max_steps, before) if resume else None
         if saved is None and changes:
             raise RunDirError(f"{directory}: the group has no checkpoint to continue from with other settings; train "
@@ -266,9 +266,9 @@ def resume_group(directory: Path, max_steps: int | None = None, progress: bool =
     if not settings:
         recipes = [load_recipe(out / "recipe.toml") for out in outs]
         return train_group(recipes, outs, info.label, info.max_steps, progress, info.plugins, resume=True)
-    recipes, changes = zip(*(changed_recipe(out, settings, where=directory) for out in outs), strict=True)
-    return train_group(recipes, outs, info.label, info.max_steps, progress, info.plugins, resume=True,
-                       changes=changes)
+    changed = [changed_recipe(out, settings, where=directory) for out in outs]
+    return train_group([recipe for recipe, _ in changed], outs, info.label, info.max_steps, progress, info.plugins,
+                       resume=True, changes=[change for _, change in changed])
 
 
 def _stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]) -> dict[str, GroupLearner]:
