@@ -180,7 +180,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
     with ExitStack() as locks:
         for out in outs:
             locks.enter_context(writing(out))
-        before = [changed_from(out, changes[k] if changes else None) for k, out in enumerate(outs)]
+        before = [changed_from(out, changes[k] if changes else None) for k, out in enumerate(outs)] if resume else []
         saved = load_group(directory, numbers, digests, max_steps, before) if resume else None
         if saved is None and changes:
             raise RunDirError(f"{directory}: the group has no checkpoint to continue from with other settings; train "
