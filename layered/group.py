@@ -304,7 +304,8 @@ class Group:
         """Every phase of the training order (from `saved`'s, where it stands, once `restore`d from it), each
         seed's results row recorded at its end."""
         start = -1 if saved is None else saved.states[0].phase  # (the states go on to later phases)
-        for p, phase in enumerate(phases_of(self.recipe)):
+        phases = phases_of(self.recipe)
+        for p, phase in enumerate(phases):
             if p < start:
                 continue  # its results rows are in the seeds' states
             if p > start:
@@ -312,6 +313,8 @@ class Group:
                     seed.state.start_phase(p, phase.learn, self.recipe.eval.every, checkpoint_interval(self.recipe))
             resumed = saved if p == start else None
             results = self.run_phase(phase, phase_budget(self.recipe, phase, self.max_steps), resumed)
+            if p == len(phases) - 1:
+                self.stop.finishing()
             rows = self._finish_phase(phase, results)
             for seed, row in zip(self.seeds, rows, strict=True):
                 seed.state.finish_phase(row)

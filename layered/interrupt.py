@@ -31,14 +31,20 @@ class StopRequest:
 
     def __init__(self, until: str = "this episode") -> None:
         self.requested: str | None = None
-        self.until = until
+        self.until: str | None = until
+
+    def finishing(self) -> None:
+        """The last step is behind: a request now lets the run end (its last evaluations and results), as no
+        checkpoint could stop it sooner."""
+        self.until = None
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         if self.requested is not None:
             raise KeyboardInterrupt
         self.requested = SIGNAL_NAMES.get(signal.Signals(signum), str(signum))
-        print(f"\nlayered: {self.requested}: finishing {self.until} to save a checkpoint "
-              "(signal again to stop at once)", file=sys.stderr)
+        doing = (f"finishing {self.until} to save a checkpoint" if self.until is not None else
+                 "no step is left: finishing the last evaluations and writing the results")
+        print(f"\nlayered: {self.requested}: {doing} (signal again to stop at once)", file=sys.stderr)
 
     @contextmanager
     def installed(self) -> Iterator[StopRequest]:

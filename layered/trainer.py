@@ -98,6 +98,8 @@ def train_phases(run: Training, state: LoopState, out: Path) -> None:
             if not state.curve:  # the phase starts now, rather than resuming from a checkpoint inside it
                 state.start_phase(p, phases[p].learn, recipe.eval.every, checkpoint_interval(recipe))
             result = run_phase(run, state, phases[p], phase_budget(recipe, phases[p], run.max_steps))
+            if p == len(phases) - 1:
+                run.stop.finishing()
             state.finish_phase(_finish_phase(run, state, phases[p], result))
             run.save(state)
             if run.stop.requested and p < len(phases) - 1:

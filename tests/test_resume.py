@@ -15,7 +15,10 @@ import numpy as np
 import pytest
 from conftest import assert_same_run, between_checkpoints, kill_when, stop_at_episode_end, train_until_stopped
 
+import layered.group as group_module
+import layered.trainer as trainer_module
 from layered import load_recipe
+from layered.cli import main
 from layered.checkpoint import CheckpointError, load_checkpoint, previous, save_checkpoint
 from layered.learner_set import build_learners
 from layered.recipe import resolved
@@ -312,3 +315,30 @@ def test_twenty_random_faults_kill_damage_and_contention_end_byte_identical(tmp_
     assert_same_run(whole, out)
     print(f"faults: {faults}")
     assert len(faults) >= 10
+
+
+@pytest.mark.parametrize("seeds", [[], ["--seeds", "0,1"]], ids=["single", "group"])
+@pytest.mark.parametrize("phase", [0, 1])
+def test_a_signal_while_a_phase_ends_says_what_follows(seeds, phase, tmp_path, monkeypatch, capsys):
+    """SIGINT while a phase's end evaluations run: after the first phase the run stops at a checkpoint, as it
+    says; after the last no step is left, so it says the run finishes, and the run does (exit 0, results)."""
+    def signalled(inner):
+        def wrapped(*args):
+            result = args[-1]  # a single run's PhaseResult, or a group's list of them
+            if (result[0] if isinstance(result, list) else result).index == phase:
+                os.kill(os.getpid(), signal.SIGINT)  # handled at once, in this thread
+            return inner(*args)
+        return wrapped
+
+    monkeypatch.setattr(trainer_module, "_finish_phase", signalled(trainer_module._finish_phase))
+    monkeypatch.setattr(group_module.Group, "_finish_phase", signalled(group_module.Group._finish_phase))
+    out = tmp_path / "run"
+    code = main(["train", str(PENDULUM / "tla-c.toml"), *seeds, "--steps", "300", *TINY, "--out", str(out)])
+    err = capsys.readouterr().err
+    results = out / ("seed0" if seeds else "") / "results.json"
+    if phase == 0:
+        assert code == 130 and "to save a checkpoint (signal again to stop at once)" in err
+        assert f"layered resume {out}" in err and not results.exists()
+    else:
+        assert code == 0 and "SIGINT: no step is left: finishing the last evaluations and writing the results" in err
+        assert "to save a checkpoint" not in err and results.exists()
