@@ -63,7 +63,7 @@ from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.replay_journal import ReplayJournal, replay_folder, replays_of
 from layered.report import count
-from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_results
+from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_finished_phases, write_results
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
 from layered.rules import Rules
 from layered.runs import (
@@ -318,6 +318,7 @@ class Group:
             rows = self._finish_phase(phase, results)
             for seed, row in zip(self.seeds, rows, strict=True):
                 seed.state.finish_phase(row)
+                write_finished_phases(seed.state.rows, seed.out)
 
     def _stacks(self, phase: Phase, evaluation: bool, lanes: int = 1) -> tuple[Stack, Rules, Envs]:
         """The phase's stack (for its layers' spaces and discounts), its rules over `lanes` rows per seed (seed k's

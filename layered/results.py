@@ -1,5 +1,5 @@
-"""What a run writes of its results: the columns of its logs, mean losses per evaluation, and at the
-end results.json, results.md and the learning curves."""
+"""What a run writes of its results: the columns of its logs, mean losses per evaluation, the results of
+the phases finished so far, and at the end results.json, results.md and the learning curves."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from layered.metrics import Evaluation
 from layered.report import plot_curves, results_table
 from layered.runstate import UpdateStats
 from layered.schema import Recipe
+from layered.summary import PHASES_FILE
 
 EPISODE_FIELDS = ["phase", "step", "return", "length"]
 
@@ -48,3 +49,11 @@ def write_results(recipe: Recipe, rows: list[dict[str, Any]], out: Path, label: 
     plot_curves(out / "metrics.csv", out / "curves.png", title=f"{recipe.env.id}: {label}, seed {recipe.train.seed}")
     write_atomically(out / "results.md", results_table(rows) + "\n")
     write_atomically(out / "results.json", json.dumps(summary, indent=2))  # last: it marks the run finished
+    (out / PHASES_FILE).unlink(missing_ok=True)  # (results.json holds its rows now)
+
+
+def write_finished_phases(rows: list[dict[str, Any]], out: Path) -> None:
+    """The results rows of the phases finished so far, as results.json will hold them, so that a long run's
+    finished phases can be reported before it ends (`layered report --unfinished`). Written whole each time:
+    a phase finished again after a resume writes the same rows."""
+    write_atomically(out / PHASES_FILE, json.dumps({"phases": rows}, indent=2))

@@ -20,8 +20,8 @@ from layered.checkpoint import previous, write_atomically
 
 LOCK_FILE = ".lock"
 _HELD: set[Path] = set()  # the run directories this process writes
-RUN_FILES = ("recipe.toml", "run.json", "metrics.csv", "episodes.csv", "results.json", "results.md", "curves.png",
-             "checkpoints", "eval", "train.log", LOCK_FILE)
+RUN_FILES = ("recipe.toml", "run.json", "metrics.csv", "episodes.csv", "phases.json", "results.json", "results.md",
+             "curves.png", "checkpoints", "eval", "train.log", LOCK_FILE)
 
 
 class RunDirError(ValueError):

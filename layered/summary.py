@@ -17,6 +17,8 @@ import numpy as np
 
 from layered.report import count
 
+PHASES_FILE = "phases.json"  # an unfinished run's finished phases, as results.json will hold them
+
 # The paper's methods first, in its column order; any other setup follows alphabetically.
 METHOD_ORDER = ["td3", "temporl", "tla-o", "tla-c", "td3-realtime", "tla-realtime"]
 
@@ -65,7 +67,8 @@ def load_finished_run(path: Path) -> Run:
 
 def load_unfinished_run(path: Path) -> Run:
     """The run in directory `path` that has not finished (no results.json), at its last evaluation in
-    metrics.csv; raises BrokenRun where it cannot be read or has not evaluated yet."""
+    metrics.csv, with the results of the phases before it that have finished (phases.json); raises BrokenRun
+    where it cannot be read or has not evaluated yet."""
     return _readable(path, _read_unfinished_run)
 
 
@@ -100,10 +103,12 @@ def _read_unfinished_run(path: Path) -> Run:
     info = json.loads((path / "run.json").read_text()) if (path / "run.json").exists() else {}
     final = {k: float(v) for k, v in last.items() if k not in ("phase", "learn") and v}
     final["phase"] = int(last["phase"])
+    finished = json.loads((path / PHASES_FILE).read_text())["phases"] if (path / PHASES_FILE).exists() else []
+    before = tuple(row for row in finished if row["phase"] < final["phase"])
     return Run(
         path=path, env=recipe["env"]["id"], label=info.get("label") or _label(path), seed=int(recipe["train"]["seed"]),
         realtime=_realtime(recipe), final=final, curve=_curve(rows, last["phase"]), total_curve=_total_curve(rows),
-        phase_starts=_phase_starts(rows), phases=({**final, "learn": last["learn"].split("+")},),
+        phase_starts=_phase_starts(rows), phases=(*before, {**final, "learn": last["learn"].split("+")}),
         stands=f"phase {last['phase']}, step {last['step']}",
     )
 

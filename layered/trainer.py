@@ -27,7 +27,7 @@ from layered.orders import ORDERS, Phase
 from layered.progress import Progress
 from layered.recipe import Recipe, resolved
 from layered.replay_journal import ReplayJournal
-from layered.results import mean_losses
+from layered.results import mean_losses, write_finished_phases
 from layered.runstate import LoopState, save_state
 
 FRESH_MEASURES = ("return_mean", "return_std", "repetition", "decisions", "jerk")
@@ -101,6 +101,7 @@ def train_phases(run: Training, state: LoopState, out: Path) -> None:
             if p == len(phases) - 1:
                 run.stop.finishing()
             state.finish_phase(_finish_phase(run, state, phases[p], result))
+            write_finished_phases(state.rows, out)  # (before the checkpoint: a phase finished again writes it again)
             run.save(state)
             if run.stop.requested and p < len(phases) - 1:
                 raise Stopped(run.stop.requested, p + 1, 0, out)

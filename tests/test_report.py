@@ -8,7 +8,9 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import pytest
 
+import layered.group as group_module
 from layered import load_recipe
+from layered.cli import main
 from layered.report import _steps_axis
 from layered.summary import Run, Setup, find_runs, group
 from layered.runs import train
@@ -150,6 +152,41 @@ def test_report_of_a_stopped_run_beside_a_finished_one(tmp_path, monkeypatch):
     assert proc.returncode == 0, proc.stderr
     assert "return: td3 | return: td3 (unfinished)" in proc.stdout and f"{float(last[3]):.1f} (1 seed)" in proc.stdout
     assert f"{stopped} (phase 0, step {last[2]})" in proc.stdout and "evaluating" not in proc.stderr
+
+
+@pytest.mark.parametrize("seeds", [[], ["--seeds", "0,1"]], ids=["single", "group"])
+def test_a_run_stopped_in_its_second_phase_reports_its_first_phase_results(seeds, tmp_path, monkeypatch):
+    """A stopped run's finished phases are in phases.json, as its results.json will hold them: `report
+    --unfinished` shows the first phase's best weights beside the second's last evaluation; once the run ends,
+    results.json holds the same row and phases.json is gone."""
+    out, steps = tmp_path / "runs" / "tla-c", 300
+    if seeds:  # the group stops at the second phase's step 50, as a signal there would
+        def stop_at(self, phase, loop, *args):
+            if self.seeds[0].state.phase == 1 and loop.step == 50:
+                self.stop.requested = "SIGINT"
+            return due(self, phase, loop, *args)
+
+        due = group_module.Group._due
+        monkeypatch.setattr(group_module.Group, "_due", stop_at)
+        assert main(["train", str(PENDULUM / "tla-c.toml"), *seeds, "--steps", str(steps), *TINY,
+                     "--out", str(out)]) == 130
+        run = out / "seed0"
+    else:
+        train_until_stopped(monkeypatch, load_recipe(PENDULUM / "tla-c.toml", TINY), out, 3, max_steps=steps,
+                            progress=False, label="pendulum/tla-c")
+        run = out
+    monkeypatch.undo()
+    first = json.loads((run / "phases.json").read_text())["phases"]
+    assert [row["phase"] for row in first] == [0] and first[0]["learn"] == ["slow"]
+    proc = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(out), "--unfinished",
+                           "--out", str(tmp_path / "report")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    per_seed = proc.stdout.split("## Per seed")[1]
+    assert "| seed | phase 0 (slow): best | return |" in per_seed
+    assert f"| {first[0]['fresh_best_return_mean']:.1f} |" in per_seed and "(phase 1, step " in proc.stdout
+    assert main(["resume", str(out)]) == 0
+    assert json.loads((run / "results.json").read_text())["phases"][0] == first[0]
+    assert not (run / "phases.json").exists()
 
 
 def test_report_of_nothing_is_a_clear_error(tmp_path):
