@@ -305,6 +305,9 @@ class Group:
         seed's results row recorded at its end."""
         start = -1 if saved is None else saved.states[0].phase  # (the states go on to later phases)
         phases = phases_of(self.recipe)
+        for seed in self.seeds:
+            if seed.state.rows:  # (resumed: written again for a run whose file is missing, from before it was kept)
+                write_finished_phases(seed.state.rows, seed.out)
         for p, phase in enumerate(phases):
             if p < start:
                 continue  # its results rows are in the seeds' states

@@ -94,6 +94,8 @@ def train_phases(run: Training, state: LoopState, out: Path) -> None:
     recipe = run.recipe
     with run.stop.installed():
         phases = phases_of(recipe)
+        if state.rows:  # (resumed: written again for a run whose file is missing, from before it was kept)
+            write_finished_phases(state.rows, out)
         for p in range(len(state.rows), len(phases)):
             if not state.curve:  # the phase starts now, rather than resuming from a checkpoint inside it
                 state.start_phase(p, phases[p].learn, recipe.eval.every, checkpoint_interval(recipe))

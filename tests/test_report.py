@@ -15,7 +15,7 @@ from layered.report import _steps_axis
 from layered.summary import Run, Setup, find_runs, group
 from layered.runs import train
 
-from conftest import train_until_stopped
+from conftest import stop_at_episode_end, train_until_stopped
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
@@ -160,22 +160,21 @@ def test_a_run_stopped_in_its_second_phase_reports_its_first_phase_results(seeds
     --unfinished` shows the first phase's best weights beside the second's last evaluation; once the run ends,
     results.json holds the same row and phases.json is gone."""
     out, steps = tmp_path / "runs" / "tla-c", 300
-    if seeds:  # the group stops at the second phase's step 50, as a signal there would
+    run = out / "seed0" if seeds else out
+
+    def stopped_at(step, command):  # the group stops after the second phase's `step`, a single run at an episode end
         def stop_at(self, phase, loop, *args):
-            if self.seeds[0].state.phase == 1 and loop.step == 50:
+            if self.seeds[0].state.phase == 1 and loop.step == step:
                 self.stop.requested = "SIGINT"
             return due(self, phase, loop, *args)
 
         due = group_module.Group._due
         monkeypatch.setattr(group_module.Group, "_due", stop_at)
-        assert main(["train", str(PENDULUM / "tla-c.toml"), *seeds, "--steps", str(steps), *TINY,
-                     "--out", str(out)]) == 130
-        run = out / "seed0"
-    else:
-        train_until_stopped(monkeypatch, load_recipe(PENDULUM / "tla-c.toml", TINY), out, 3, max_steps=steps,
-                            progress=False, label="pendulum/tla-c")
-        run = out
-    monkeypatch.undo()
+        stop_at_episode_end(monkeypatch, 1 if command[0] == "resume" else 3)
+        assert main(command) == 130
+        monkeypatch.undo()
+
+    stopped_at(50, ["train", str(PENDULUM / "tla-c.toml"), *seeds, "--steps", str(steps), *TINY, "--out", str(out)])
     first = json.loads((run / "phases.json").read_text())["phases"]
     assert [row["phase"] for row in first] == [0] and first[0]["learn"] == ["slow"]
     proc = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(out), "--unfinished",
@@ -184,6 +183,9 @@ def test_a_run_stopped_in_its_second_phase_reports_its_first_phase_results(seeds
     per_seed = proc.stdout.split("## Per seed")[1]
     assert "| seed | phase 0 (slow): best | return |" in per_seed
     assert f"| {first[0]['fresh_best_return_mean']:.1f} |" in per_seed and "(phase 1, step " in proc.stdout
+    (run / "phases.json").unlink()  # as a run started before the file was kept has none: a resume writes it
+    stopped_at(100, ["resume", str(out)])
+    assert json.loads((run / "phases.json").read_text())["phases"] == first
     assert main(["resume", str(out)]) == 0
     assert json.loads((run / "results.json").read_text())["phases"][0] == first[0]
     assert not (run / "phases.json").exists()
