@@ -30,7 +30,7 @@ single run's `--modes` and a group of one's, over training steps alone as LeanRL
 steps/s on an H100 are, and a group of one's `--group-modes` with its evaluations), `--target-seeds`
 (32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s; over training steps alone too), and as
 many seeds of the real-time Hopper TLA recipe (10,000), each also as `--splits` groups at once, the groups'
-environments in `--group-workers`.
+environments in `--group-workers`; `--targets` picks some of the three (`cheetah`, `hopper`, `realtime`).
 A failed setting is a row that says why; the others still run.
 
 The rates of the sweep, group and targets parts are read from progress lines, and each interval between
@@ -39,6 +39,7 @@ targets' real-time one; a sixth of a run by default): its time is in the rate, a
 LeanRL's figure has none, so to compare with it, space the evaluations out (the fourth command below).
 
     python benchmarks/gpu.py --parts targets                                  # the engine's targets, measured
+    python benchmarks/gpu.py --parts targets --targets hopper,realtime --splits 1,2   # those not met yet
     python benchmarks/gpu.py                                                  # the three parts, on the GPU
     python benchmarks/gpu.py --env HalfCheetah-v5 --hidden 256,256 --parts modes,group --groups 1
     python benchmarks/gpu.py --env HalfCheetah-v5 --hidden 256,256 --parts group --groups 1 --group-modes cudagraphs \
@@ -247,6 +248,17 @@ def one_seed_child(args: argparse.Namespace, mode: str, env: str, hidden: str) -
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+TARGETS = ("cheetah", "hopper", "realtime")
+
+
+def target_names(text: str) -> list[str]:
+    """`--targets`: some of TARGETS, comma-separated."""
+    names = text.split(",")
+    if unknown := set(names) - set(TARGETS):
+        raise argparse.ArgumentTypeError(f"no target {', '.join(sorted(unknown))} (choose from {', '.join(TARGETS)})")
+    return names
+
+
 def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float]]:
     """The engine's targets: (what, the setting measured, steps/s or why it failed, steps/s needed) per setting."""
     k = args.target_seeds
@@ -259,22 +271,26 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
             rows.append((what, setting, str(e), needed))
         print(_target_row(rows[-1]), flush=True)
 
+    chosen = args.targets
     one = "one TD3 seed, HalfCheetah-v5, 256-256"
-    for mode in args.modes.split(","):
+    for mode in args.modes.split(",") if "cheetah" in chosen else []:
         measured(one, f"single run, compile {mode}, training steps alone", 936,
                  lambda mode=mode: one_seed_child(args, mode, "HalfCheetah-v5", "256,256")["steps_per_second"])
     graphed = "cudagraphs" if args.device == "cuda" else "off"  # (what gpu_profile.py trains with)
-    measured(one, f"group of 1, compile {graphed}, training steps alone",
-             936, lambda: training_steps(args.device, "HalfCheetah-v5", "256,256", args.steps, args.warmup))
-    for mode in args.group_modes.split(","):
+    if "cheetah" in chosen:
+        measured(one, f"group of 1, compile {graphed}, training steps alone",
+                 936, lambda: training_steps(args.device, "HalfCheetah-v5", "256,256", args.steps, args.warmup))
+    for mode in args.group_modes.split(",") if "cheetah" in chosen else []:
         measured(one, f"group of 1, compile {mode}, with evaluations", 936,
                  lambda mode=mode: group(args.device, 1, None, "HalfCheetah-v5", "256,256", args.steps, args.warmup,
                                          every(args), mode, "0", [])["aggregate"])
-    for what, recipe, env, settings, needed in (
-            (f"{k} TD3 seeds of Hopper-v5, 400-300", None, "Hopper-v5", [], 20_000),
-            (f"{k} seeds of real-time Hopper TLA (2 layers)", str(REALTIME_TLA), "Hopper-v5",
+    for name, what, recipe, env, settings, needed in (
+            ("hopper", f"{k} TD3 seeds of Hopper-v5, 400-300", None, "Hopper-v5", [], 20_000),
+            ("realtime", f"{k} seeds of real-time Hopper TLA (2 layers)", str(REALTIME_TLA), "Hopper-v5",
              [*REALTIME_WARMUP, f"eval.every={every(args)}", "eval.episodes=1", "eval.fresh_episodes=0"],
              10_000)):
+        if name not in chosen:
+            continue
         for mode in args.group_modes.split(","):
             for workers in args.group_workers.split(","):
                 if recipe is None and mode == graphed:
@@ -352,6 +368,9 @@ def main() -> None:
     parser.add_argument("--parts", default="modes,sweep,group",
                         help="which parts to run: modes, sweep, group (the default: all three) and targets")
     parser.add_argument("--target-seeds", type=int, default=32, help="the targets' group size (default 32)")
+    parser.add_argument("--targets", default=",".join(TARGETS), type=target_names,
+                        help="which targets to measure: cheetah (one HalfCheetah-v5 seed), hopper (the Hopper TD3 "
+                             "group), realtime (the real-time Hopper TLA group); default all three")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
