@@ -271,25 +271,24 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
             rows.append((what, setting, str(e), needed))
         print(_target_row(rows[-1]), flush=True)
 
-    chosen = args.targets
     one = "one TD3 seed, HalfCheetah-v5, 256-256"
-    for mode in args.modes.split(",") if "cheetah" in chosen else []:
-        measured(one, f"single run, compile {mode}, training steps alone", 936,
-                 lambda mode=mode: one_seed_child(args, mode, "HalfCheetah-v5", "256,256")["steps_per_second"])
     graphed = "cudagraphs" if args.device == "cuda" else "off"  # (what gpu_profile.py trains with)
-    if "cheetah" in chosen:
+    if "cheetah" in args.targets:
+        for mode in args.modes.split(","):
+            measured(one, f"single run, compile {mode}, training steps alone", 936,
+                     lambda mode=mode: one_seed_child(args, mode, "HalfCheetah-v5", "256,256")["steps_per_second"])
         measured(one, f"group of 1, compile {graphed}, training steps alone",
                  936, lambda: training_steps(args.device, "HalfCheetah-v5", "256,256", args.steps, args.warmup))
-    for mode in args.group_modes.split(",") if "cheetah" in chosen else []:
-        measured(one, f"group of 1, compile {mode}, with evaluations", 936,
-                 lambda mode=mode: group(args.device, 1, None, "HalfCheetah-v5", "256,256", args.steps, args.warmup,
-                                         every(args), mode, "0", [])["aggregate"])
+        for mode in args.group_modes.split(","):
+            measured(one, f"group of 1, compile {mode}, with evaluations", 936,
+                     lambda mode=mode: group(args.device, 1, None, "HalfCheetah-v5", "256,256", args.steps,
+                                             args.warmup, every(args), mode, "0", [])["aggregate"])
     for name, what, recipe, env, settings, needed in (
             ("hopper", f"{k} TD3 seeds of Hopper-v5, 400-300", None, "Hopper-v5", [], 20_000),
             ("realtime", f"{k} seeds of real-time Hopper TLA (2 layers)", str(REALTIME_TLA), "Hopper-v5",
              [*REALTIME_WARMUP, f"eval.every={every(args)}", "eval.episodes=1", "eval.fresh_episodes=0"],
              10_000)):
-        if name not in chosen:
+        if name not in args.targets:
             continue
         for mode in args.group_modes.split(","):
             for workers in args.group_workers.split(","):

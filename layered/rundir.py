@@ -17,10 +17,11 @@ from pathlib import Path
 from typing import Any
 
 from layered.checkpoint import previous, write_atomically
+from layered.summary import PHASES_FILE
 
 LOCK_FILE = ".lock"
 _HELD: set[Path] = set()  # the run directories this process writes
-RUN_FILES = ("recipe.toml", "run.json", "metrics.csv", "episodes.csv", "phases.json", "results.json", "results.md",
+RUN_FILES = ("recipe.toml", "run.json", "metrics.csv", "episodes.csv", PHASES_FILE, "results.json", "results.md",
              "curves.png", "checkpoints", "eval", "train.log", LOCK_FILE)
 
 
