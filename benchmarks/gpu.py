@@ -27,11 +27,11 @@ about 0.5 GB a process), so a sweep pays a context per seed and a group one in a
 A fourth part, **targets**, measures the figures the vectorised engine is held to, each against what
 it must reach, in one table: one TD3 seed on HalfCheetah-v5 with 256-256 networks (the best of the
 single run's `--modes` and a group of one's, over training steps alone as LeanRL's published 936
-steps/s on an H100 are, and a group of one's `--group-modes` with its evaluations), `--target-seeds`
-(32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s; over training steps alone too), and as
-many seeds of the real-time Hopper TLA recipe (10,000), each also as `--splits` groups at once, the groups'
-environments in `--group-workers`; `--targets` picks some of the three (`cheetah`, `hopper`, `realtime`).
-A failed setting is a row that says why; the others still run.
+steps/s on an H100 are, and a single run's and a group of one's `--group-modes` with their evaluations),
+`--target-seeds` (32) TD3 seeds of Hopper-v5 as one group (20,000 aggregate steps/s; over training steps
+alone too), and as many seeds of the real-time Hopper TLA recipe (10,000), each also as `--splits` groups at
+once, the groups' environments in `--group-workers`; `--targets` picks some of the three (`cheetah`, `hopper`,
+`realtime`). A failed setting is a row that says why; the others still run.
 
 The rates of the sweep, group and targets parts are read from progress lines, and each interval between
 two lines ends with an evaluation (one episode, every `--eval-every` steps of the TD3 recipe and of the
@@ -162,14 +162,14 @@ def _td3_file(folder: str, env: str, hidden: str, steps: int, warmup: int, every
 
 
 def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, steps: int, warmup: int, every: int,
-          mode: str, workers: str, settings: list[str], splits: int = 1) -> dict[str, Any]:
-    """`layered train --seeds` with `seeds` seeds as one group, its update as `mode` (learner.compile), its
-    environments stepped as `workers` says (`environment_settings`), of `recipe` (a file, with `settings`) or the
-    benchmark's TD3 recipe (evaluated `every` steps); its steps/s (per seed, every seed stepping at once) from
-    the progress lines (as `settled_rate` reads them), times the seeds, and its peak GPU memory per seed.
-    With `splits`, the seeds are cut into that many groups trained at once, each `layered train --seeds` process
-    on its own share of the cores (so that `auto` sizes its workers to the share), under CUDA MPS on a GPU
-    (started where it can be); the aggregate is the sum of the groups'."""
+          mode: str, workers: str, settings: list[str], splits: int = 1, single: bool = False) -> dict[str, Any]:
+    """`layered train --seeds` with `seeds` seeds as one group (with `single`, one seed as a single run), its
+    update as `mode` (learner.compile), its environments stepped as `workers` says (`environment_settings`), of
+    `recipe` (a file, with `settings`) or the benchmark's TD3 recipe (evaluated `every` steps); its steps/s (per
+    seed, every seed stepping at once) from the progress lines (as `settled_rate` reads them), times the seeds,
+    and its peak GPU memory per seed. With `splits`, the seeds are cut into that many groups trained at once,
+    each `layered train --seeds` process on its own share of the cores (so that `auto` sizes its workers to the
+    share), under CUDA MPS on a GPU (started where it can be); the aggregate is the sum of the groups'."""
     from layered.cuda_mps import shared_gpu
 
     parts = groups_at_once(seeds, splits)
@@ -182,8 +182,9 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
             for (part, share), log in zip(parts, logs, strict=True):
                 with log.open("w") as err:
                     processes.append(subprocess.Popen(
-                        [sys.executable, "-m", "layered.cli", "train", recipe, "--seeds", f"{part[0]}-{part[-1]}",
-                         "--steps", str(steps), "--device", device, "--out", str(Path(tmp) / f"runs{part[0]}"),
+                        [sys.executable, "-m", "layered.cli", "train", recipe,
+                         *([] if single else ["--seeds", f"{part[0]}-{part[-1]}"]), "--steps", str(steps),
+                         "--device", device, "--out", str(Path(tmp) / f"runs{part[0]}"),
                          *(["--threads", str(len(share))] if splits > 1 else []), f"learner.compile={mode}",
                          *environment_settings(workers), *settings],
                         stdout=subprocess.DEVNULL, stderr=err, text=True,
@@ -280,9 +281,11 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
         measured(one, f"group of 1, compile {graphed}, training steps alone",
                  936, lambda: training_steps(args.device, "HalfCheetah-v5", "256,256", args.steps, args.warmup))
         for mode in args.group_modes.split(","):
-            measured(one, f"group of 1, compile {mode}, with evaluations", 936,
-                     lambda mode=mode: group(args.device, 1, None, "HalfCheetah-v5", "256,256", args.steps,
-                                             args.warmup, every(args), mode, "0", [])["aggregate"])
+            for single in (True, False):
+                measured(one, f"{'single run' if single else 'group of 1'}, compile {mode}, with evaluations", 936,
+                         lambda mode=mode, single=single: group(args.device, 1, None, "HalfCheetah-v5", "256,256",
+                                                                args.steps, args.warmup, every(args), mode, "0", [],
+                                                                single=single)["aggregate"])
     for name, what, recipe, env, settings, needed in (
             ("hopper", f"{k} TD3 seeds of Hopper-v5, 400-300", None, "Hopper-v5", [], 20_000),
             ("realtime", f"{k} seeds of real-time Hopper TLA (2 layers)", str(REALTIME_TLA), "Hopper-v5",

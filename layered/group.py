@@ -32,10 +32,9 @@ from layered.best_journal import BestJournal, best_folder
 from layered.checkpoint import save_checkpoint
 from layered.checkpoint_writer import CheckpointWriter, writes_beside
 from layered.env_group import Envs
-from layered.env_workers import open_envs
 from layered.envs import make_env, snapshot_env
 from layered.events import EventLog
-from layered.group_eval import all_rows, evaluate_group, torch_aside
+from layered.group_eval import Stacks, all_rows, eval_lanes, evaluate_stacks, open_stacks
 from layered.group_state import (
     GROUP_CHECKPOINT,
     GroupCheckpoint,
@@ -57,6 +56,7 @@ from layered.learners.choice_group import ChoiceLearnerGroup, GateTD3Group, Temp
 from layered.learners.td3 import TD3Config
 from layered.learners.td3_group import TD3Group
 from layered.logs import CsvLog
+from layered.metrics import Evaluation
 from layered.orders import Phase
 from layered.pending_losses import PendingLosses
 from layered.progress import Progress
@@ -94,9 +94,6 @@ GroupLearner = TD3Group | ChoiceLearnerGroup
 STACKED: dict[str, type[TD3Group] | type[ChoiceLearnerGroup]] = {"td3": TD3Group, "td3-gate": GateTD3Group,
                                                                  "temporl": TempoRLGroup}
 """The learners a group stacks over its seeds, by kind (each takes the seeds' single learners of that kind)."""
-EVAL_LANES, EVAL_ROWS = 10, 320
-"""At most this many of a seed's evaluation episodes are played side by side, each in an environment of its own,
-and at most this many environments in all (a Gymnasium MuJoCo one holds about 1 MB, a dm_control one 13 MB)."""
 
 
 @dataclass
@@ -323,20 +320,14 @@ class Group:
                 seed.state.finish_phase(row)
                 write_finished_phases(seed.state.rows, seed.out)
 
-    def _stacks(self, phase: Phase, evaluation: bool, lanes: int = 1) -> tuple[Stack, Rules, Envs]:
-        """The phase's stack (for its layers' spaces and discounts), its rules over `lanes` rows per seed (seed k's
-        lane l is row k * lanes + l: an evaluation plays several episodes of a seed side by side), and their envs."""
-        rows = self.rows * lanes
-        envs = open_envs(self.recipe.env.id, rows, self.recipe.env.workers, self.recipe.env.threads, evaluation)
-        stack = Stack(self.recipe, envs.observation_space, envs.action_space, active=list(phase.active),
-                      evaluation=evaluation)
-        rules = Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, rows)
-        return stack, rules, envs
+    def _stacks(self, phase: Phase, evaluation: bool, lanes: int = 1) -> Stacks:
+        """The phase's stacks (`open_stacks`) over `lanes` rows per seed (seed k's lane l is row k * lanes + l: an
+        evaluation plays several episodes of a seed side by side)."""
+        return open_stacks(self.recipe, phase.active, self.rows * lanes, evaluation)
 
-    def _evaluator(self, phase: Phase, episodes: int) -> tuple[Stack, Rules, Envs]:
-        """The stacks that play `episodes` evaluation episodes per seed: as many of them side by side as
-        `EVAL_LANES` and `EVAL_ROWS` allow."""
-        return self._stacks(phase, evaluation=True, lanes=max(1, min(episodes, EVAL_LANES, EVAL_ROWS // self.rows)))
+    def _evaluator(self, phase: Phase, episodes: int) -> Stacks:
+        """The stacks that play `episodes` evaluation episodes per seed, as many side by side as `eval_lanes` says."""
+        return self._stacks(phase, evaluation=True, lanes=eval_lanes(episodes, self.rows))
 
     def run_phase(self, phase: Phase, budget: int, saved: GroupCheckpoint | None = None) -> list[PhaseResult]:
         """Train `phase.learn` for `budget` base steps in every seed, the other present layers frozen, from
@@ -416,7 +407,7 @@ class Group:
                 for seed in self.seeds]
 
     def _begin(self, phase: Phase, saved: GroupCheckpoint | None, rules: Rules, envs: Envs,
-               evaluator: tuple[Stack, Rules, Envs], losses: dict[str, PendingLosses], bar: Progress) -> None:
+               evaluator: Stacks, losses: dict[str, PendingLosses], bar: Progress) -> None:
         """Start the phase (its evaluation at step 0 and every row's first, seeded episode), or put the
         rules' rows and the environments where `saved` found them."""
         if saved is not None:
@@ -430,7 +421,7 @@ class Group:
 
     def _due(self, phase: Phase, loop: PhaseLoop, decisions: dict[str, np.ndarray],
              losses: dict[str, PendingLosses], rules: Rules, envs: Envs,
-             evaluator: tuple[Stack, Rules, Envs], bar: Progress) -> None:
+             evaluator: Stacks, bar: Progress) -> None:
         """What is due after a step: an evaluation, a checkpoint, and the stop a signal asked for."""
         state = self.seeds[0].state
         if loop.step >= state.next_eval:
@@ -501,7 +492,7 @@ class Group:
         self.learners[self.names[i]].observe(mine.seen, mine.output, mine.reward, next_seen, terminated, discount,
                                              rows, mine.path)
 
-    def _evaluate(self, phase: Phase, evaluator: tuple[Stack, Rules, Envs], losses: dict[str, PendingLosses],
+    def _evaluate(self, phase: Phase, evaluator: Stacks, losses: dict[str, PendingLosses],
                   step: int, bar: Progress) -> None:
         """Evaluate every seed's present layers now and log its row, with its mean losses since the last."""
         results = self._evaluations(phase, evaluator, self.recipe.eval.episodes, self.recipe.eval.seed_offset)
@@ -521,15 +512,12 @@ class Group:
         returns = np.array([r.return_mean for r in results])
         bar.evaluated(step, float(returns.mean()), float(returns.std()), learned)
 
-    def _evaluations(self, phase: Phase, evaluator: tuple[Stack, Rules, Envs], episodes: int,
-                     offset: int) -> list[Any]:
+    def _evaluations(self, phase: Phase, evaluator: Stacks, episodes: int, offset: int) -> list[Evaluation]:
         """Each seed's evaluation of its present layers over `episodes` episodes seeded from its seed + `offset`, as
         many side by side as the evaluator has lanes."""
-        stack, rules, envs = evaluator
-        macs = {self.names[i]: self.learners[self.names[i]].act_macs() for i in stack.active}
-        with torch_aside(envs):
-            return evaluate_group(rules, envs, lambda i, obs: self.learners[self.names[i]].greedy(obs), macs,
-                                  episodes, [seed.recipe.train.seed + offset for seed in self.seeds])
+        macs = {self.names[i]: self.learners[self.names[i]].act_macs() for i in evaluator[0].active}
+        return evaluate_stacks(evaluator, lambda name, obs: self.learners[name].greedy(obs), macs, episodes,
+                               [seed.recipe.train.seed + offset for seed in self.seeds])
 
     def _finish_phase(self, phase: Phase, results: list[PhaseResult]) -> list[dict[str, Any]]:
         """Each seed's phase end as the single loop's: its final and best weights saved, both evaluated on
@@ -559,7 +547,7 @@ class Group:
                     self.learners[name].load_seed_state_dict(k, state)
         return rows
 
-    def _fresh(self, evaluator: tuple[Stack, Rules, Envs] | None, phase: Phase, rows: list[dict[str, Any]],
+    def _fresh(self, evaluator: Stacks | None, phase: Phase, rows: list[dict[str, Any]],
                label: str) -> None:
         """Add each seed's `fresh_<label>_<measure>` evaluation on `eval.fresh_episodes` episodes to its row (none
         without an evaluator: `eval.fresh_episodes` is 0)."""

@@ -1,21 +1,71 @@
 """Deterministic evaluation of K stacks at once, one per seed: the measures `layered.evaluate` takes of
-one stack, for each seed, from a batch of rules stepping several environments per seed."""
+one stack, for each seed, from a batch of rules stepping several environments per seed. A single run
+evaluates as a group of one seed does, its episodes side by side."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 
 import numpy as np
 import torch
 
 from layered.env_group import Envs
+from layered.env_workers import WorkersSetting, open_envs
 from layered.evaluate import episode_seeds
+from layered.learners import Learner
 from layered.metrics import EpisodeMeasures, EpisodeMeter, Evaluation, summarise
 from layered.rules import Rules
+from layered.schema import Recipe
+from layered.stack import Stack
 
 GroupPolicy = Callable[[int, np.ndarray], np.ndarray]
 """Layer i's greedy outputs for `n` observations per seed: (i, [K, n, obs]) -> [K, n, size]."""
+Stacks = tuple[Stack, Rules, Envs]
+"""A phase's stack (for its layers' names, spaces and discounts), its rules over some rows, and their environments."""
+EVAL_LANES, EVAL_ROWS = 10, 320
+"""At most this many of a seed's evaluation episodes are played side by side, each in an environment of its own,
+and at most this many environments in all (a Gymnasium MuJoCo one holds about 1 MB, a dm_control one 13 MB)."""
+
+
+def eval_lanes(episodes: int, seeds: int) -> int:
+    """How many of each seed's `episodes` an evaluation of `seeds` seeds plays side by side: as many as
+    `EVAL_LANES` and `EVAL_ROWS` allow, at least one."""
+    return max(1, min(episodes, EVAL_LANES, EVAL_ROWS // seeds))
+
+
+def open_stacks(recipe: Recipe, active: Sequence[str], rows: int, evaluation: bool,
+                workers: WorkersSetting | None = None) -> Stacks:
+    """The stack of the `active` layers, its rules over `rows` rows and their environments (for training, or for
+    an `evaluation`), stepped in `workers` processes (default: the recipe's `env.workers`)."""
+    env = recipe.env
+    envs = open_envs(env.id, rows, env.workers if workers is None else workers, env.threads, evaluation)
+    stack = Stack(recipe, envs.observation_space, envs.action_space, active=list(active), evaluation=evaluation)
+    return stack, Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, rows), envs
+
+
+def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int) -> Stacks:
+    """A single run's evaluator of `episodes` episodes: the rows of a group of one seed, stepped in this process
+    (as the run's own environment is, so that environments a plugin registers step there too)."""
+    return open_stacks(recipe, active, eval_lanes(episodes, 1), evaluation=True, workers=0)
+
+
+def evaluate_stacks(evaluator: Stacks, greedy: Callable[[str, np.ndarray], np.ndarray], macs: Mapping[str, int],
+                    episodes: int, seeds: Sequence[int]) -> list[Evaluation]:
+    """`evaluate_group` of the evaluator's rows, a layer's policy named by its layer: `greedy(name, obs)`, its outputs
+    without exploration ([K, n, obs] -> [K, n, size]); `macs`, its cost per decision."""
+    stack, rules, envs = evaluator
+    names = [layer.name for layer in stack.layers]
+    with torch_aside(envs):
+        return evaluate_group(rules, envs, lambda i, obs: greedy(names[i], obs),
+                              {names[i]: macs[names[i]] for i in stack.active}, episodes, seeds)
+
+
+def evaluate_run(evaluator: Stacks, learners: Mapping[str, Learner], episodes: int, seed: int) -> Evaluation:
+    """A single run's evaluation of its present layers over `episodes` episodes seeded from `seed`: what
+    `layered.evaluate.evaluate` measures through the agent view, the episodes played side by side."""
+    macs = {name: learner.act_macs() for name, learner in learners.items()}
+    return evaluate_stacks(evaluator, lambda name, obs: learners[name].greedy(obs[0])[None], macs, episodes, [seed])[0]
 
 
 def all_rows(seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:

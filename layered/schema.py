@@ -38,10 +38,11 @@ class EnvConfig(Section):
     workers: Whole | Literal["auto"] = "auto"
     """Processes that step a group's environments (`layered train --seeds`), several each: 0 steps them
     in the training process; `auto` takes half the cores on machines with 4 or more, else 0. Where they
-    step changes no number."""
+    step changes no number. A single run's evaluation episodes step in its own process."""
     threads: Whole | Literal["auto"] = "auto"
     """Threads that step a group's environments in each process that steps them (the training process, or
-    each worker), a slice of the rows each; MuJoCo's step runs in parallel in them. 0 steps the rows in the
+    each worker), a slice of the rows each, and a single run's evaluation episodes played side by side;
+    MuJoCo's step runs in parallel in them. 0 steps the rows in the
     process's own thread. `auto`: while training, one in the training process (the rows step beside the
     update) where it has 2 cores or more, and none in workers; for evaluations of Gymnasium's MuJoCo tasks,
     the cores shared out among the processes that step the rows. Where they step changes no number."""

@@ -17,7 +17,7 @@ import numpy as np
 
 from layered.agents import LayeredEnv, make_aec_env
 from layered.checkpoint import save_checkpoint
-from layered.evaluate import evaluate
+from layered.group_eval import Stacks, evaluate_run, open_run_evaluator
 from layered.interrupt import StopRequest, Stopped
 from layered.learners import Learner
 from layered.events import EventLog
@@ -120,27 +120,29 @@ def _finish_phase(run: Training, state: LoopState, phase: Phase, result: PhaseRe
         save_checkpoint(folder / f"{name}.best.pt", name, state.best[name])
     best_step, best = state.curve[state.best_index()]
     row = {**phase_row(result), "best_step": best_step, "best_return_mean": best.return_mean}
-    row |= _fresh_evaluation(run, phase, "final")  # the learners hold the final weights
-    for name in phase.learn:
-        learners[name].load_state_dict(state.best[name])
-    row |= _fresh_evaluation(run, phase, "best")
+    evaluator = open_run_evaluator(recipe, phase.active, recipe.eval.fresh_episodes) if recipe.eval.fresh_episodes \
+        else None
+    try:
+        row |= _fresh_evaluation(run, evaluator, "final")  # the learners hold the final weights
+        for name in phase.learn:
+            learners[name].load_state_dict(state.best[name])
+        row |= _fresh_evaluation(run, evaluator, "best")
+    finally:
+        if evaluator is not None:
+            evaluator[2].close()
     for name in final:
         learners[name].load_state_dict(final[name])
     return row
 
 
-def _fresh_evaluation(run: Training, phase: Phase, label: str) -> dict[str, float]:
+def _fresh_evaluation(run: Training, evaluator: Stacks | None, label: str) -> dict[str, float]:
     """The present layers evaluated on `eval.fresh_episodes` episodes of their own seed, as
-    `fresh_<label>_<measure>` (nothing when eval.fresh_episodes is 0)."""
-    recipe = run.recipe
-    if not recipe.eval.fresh_episodes:
+    `fresh_<label>_<measure>` (nothing without an evaluator: eval.fresh_episodes is 0)."""
+    if evaluator is None:
         return {}
-    env = make_aec_env(recipe, active=list(phase.active), evaluation=True, keep_trace=True)
+    recipe = run.recipe
     seed = recipe.train.seed + recipe.eval.fresh_seed_offset
-    try:
-        result = evaluate(env, run.learners, recipe.eval.fresh_episodes, seed)
-    finally:
-        env.close()
+    result = evaluate_run(evaluator, run.learners, recipe.eval.fresh_episodes, seed)
     return {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
 
 
@@ -152,26 +154,26 @@ def run_phase(run: Training, state: LoopState, phase: Phase, budget: int) -> Pha
     """
     recipe = run.recipe
     env = make_aec_env(recipe, active=list(phase.active))
-    eval_env = make_aec_env(recipe, active=list(phase.active), evaluation=True, keep_trace=True)
+    evaluator = open_run_evaluator(recipe, phase.active, recipe.eval.episodes)
     bar = Progress(f"phase {state.phase}: {'+'.join(phase.learn)}", budget, state.step, run.progress)
     try:
         if not state.curve:
-            _evaluate(run, state, phase, eval_env, bar)
+            _evaluate(run, state, phase, evaluator, bar)
         while state.step < budget:
             _start_episode(env, state, recipe.train.seed)
-            _train_episode(run, state, phase, budget, env, eval_env, bar)
+            _train_episode(run, state, phase, budget, env, evaluator, bar)
             _end_episode(run, env, state)
         if state.curve[-1][0] != state.step:
-            _evaluate(run, state, phase, eval_env, bar)
+            _evaluate(run, state, phase, evaluator, bar)
     finally:
         bar.close()
         env.close()
-        eval_env.close()
+        evaluator[2].close()
     return PhaseResult(state.phase, phase, state.step, state.curve[-1][1], curve_auc(recipe, state.curve))
 
 
-def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, env: LayeredEnv, eval_env: LayeredEnv,
-                 bar: Progress) -> None:
+def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, env: LayeredEnv, evaluator: Stacks,
+                   bar: Progress) -> None:
     """One training episode, or its part until the phase's budget is spent: per decision of a
     layer, store its completed transition, act, step the env, update, log."""
     learners, recipe = run.learners, run.recipe
@@ -206,7 +208,7 @@ def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, e
                     if (losses := learner.update()) is not None:
                         state.pending[name].add(losses)
         if state.step >= state.next_eval:  # log
-            _evaluate(run, state, phase, eval_env, bar)
+            _evaluate(run, state, phase, evaluator, bar)
             state.next_eval += recipe.eval.every
 
 
@@ -238,11 +240,11 @@ def _end_episode(run: Training, env: LayeredEnv, state: LoopState) -> None:
         raise Stopped(run.stop.requested, state.phase, state.step, run.checkpoint.parent.parent)
 
 
-def _evaluate(run: Training, state: LoopState, phase: Phase, eval_env: LayeredEnv, bar: Progress) -> None:
+def _evaluate(run: Training, state: LoopState, phase: Phase, evaluator: Stacks, bar: Progress) -> None:
     """Evaluate the present layers now and log the row, with each learning layer's mean losses since the last."""
     recipe = run.recipe
     _read_back_losses(state, run.learners)
-    result = evaluate(eval_env, run.learners, recipe.eval.episodes, recipe.train.seed + recipe.eval.seed_offset)
+    result = evaluate_run(evaluator, run.learners, recipe.eval.episodes, recipe.train.seed + recipe.eval.seed_offset)
     state.curve.append((state.step, result))
     if state.best_index() == len(state.curve) - 1:
         state.best = {name: copy.deepcopy(run.learners[name].state_dict()) for name in phase.learn}

@@ -102,7 +102,7 @@ def test_an_evaluator_holds_as_many_lanes_per_seed_as_the_caps_allow(tmp_path, m
     phase = phases_of(recipes[0])[-1]
     # 10 per seed; no more than the episodes; no more than the rows in all allow; at least one
     for episodes, cap, rows in ((100, 320, 20), (3, 320, 6), (100, 7, 6), (100, 1, 2)):
-        monkeypatch.setattr("layered.group.EVAL_ROWS", cap)
+        monkeypatch.setattr("layered.group_eval.EVAL_ROWS", cap)
         _, rules, envs = group._evaluator(phase, episodes)
         envs.close()
         assert rules.rows == rows, (episodes, cap)

@@ -75,6 +75,19 @@ def test_learner_policy_module_acts_as_act(name):
         assert np.array_equal(policy(torch.from_numpy(obs)).detach().numpy(), learner.act(obs, False))
 
 
+@pytest.mark.parametrize("name", LEARNERS.names())
+def test_learner_greedy_batch_is_its_greedy_act_row_by_row(name):
+    """An evaluation's episodes played side by side get, row by row, what `act` without exploration gives."""
+    learner = make_learner(name, 1)
+    behaviour(learner)
+    obs = np.random.default_rng(3).uniform(-1, 1, (7, 3)).astype(np.float32)
+    batch = learner.greedy(obs)
+    rows = np.stack([learner.act(o, False) for o in obs])
+    assert batch.shape == rows.shape and batch.dtype == np.float32
+    assert np.allclose(batch, rows, atol=1e-6)
+    assert len({tuple(row) for row in rows.round(4)}) > 1  # (distinct observations give distinct outputs)
+
+
 def through_a_file(state):
     """`state` as a checkpoint gives it back: written and read again, sharing no tensor."""
     buffer = io.BytesIO()

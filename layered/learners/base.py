@@ -84,6 +84,11 @@ class Learner(ABC):
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         """The action for `obs`; with `explore`, perturbed for exploration. Never learns."""
 
+    def greedy(self, obs: np.ndarray) -> np.ndarray:
+        """The outputs without exploration for a batch of observations (`obs`: [n, obs] -> [n, size]): an
+        evaluation's episodes played side by side. One `act` per row unless a learner acts on batches itself."""
+        return np.stack([self.act(row, explore=False) for row in obs])
+
     def policy(self) -> nn.Module:
         """The deterministic policy as a torch module of its own: one float32 observation vector in,
         what `act(obs, explore=False)` returns out. `layered export` writes it."""

@@ -72,6 +72,11 @@ class GroupOfOne(Learner):
             return self.Single.act(self, obs, explore)
         return group.act(np.asarray(obs, np.float32)[None], explore)[0]
 
+    def greedy(self, obs: np.ndarray) -> np.ndarray:
+        if (group := self.group) is None:
+            return self.Single.greedy(self, obs)
+        return group.greedy(np.asarray(obs, np.float32)[None])[0]
+
     def observe(self, transition: Transition) -> None:
         if (group := self.group) is None:
             return self.Single.observe(self, transition)

@@ -40,6 +40,12 @@ class ChoiceQ:
         x = torch.as_tensor(np.concatenate([obs, action]), dtype=torch.float32, device=self.td3.device)
         return int(self.net(x).argmax())
 
+    @torch.no_grad()
+    def best(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
+        """The best choice's index for each row of a batch (`obs`: [n, obs], `action`: [n, action] -> [n])."""
+        x = torch.as_tensor(np.concatenate([obs, action], axis=1), dtype=torch.float32, device=self.td3.device)
+        return self.net(x).argmax(dim=1).cpu().numpy()
+
     def add(self, transition: Transition, choice: int) -> None:
         """Store that `choice` was made with `transition.action` (without the choice's own output)."""
         self.buffer.add(transition._replace(action=np.append(transition.action, choice), path=()))
@@ -122,6 +128,11 @@ class TD3WithChoice(Learner):
         action = self.td3.act(obs, explore)
         index = self.choice.choose(obs, action, self.epsilon() if explore else 0.0, self.rng)
         return np.append(action, self.encode(index)).astype(np.float32)
+
+    def greedy(self, obs: np.ndarray) -> np.ndarray:
+        action = self.td3.greedy(obs)
+        values = np.array([self.encode(index) for index in range(self.choice.n)], np.float32)
+        return np.concatenate([action, values[self.choice.best(obs, action)][:, None]], axis=1)
 
     def policy(self) -> nn.Module:
         values = [self.encode(k) for k in range(self.choice.n)]

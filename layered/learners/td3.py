@@ -261,6 +261,9 @@ class TD3(Learner):
             action = np.clip(action + noise, self.action_space.low, self.action_space.high)
         return action.astype(np.float32)
 
+    def greedy(self, obs: np.ndarray) -> np.ndarray:
+        return self.act(obs, explore=False)  # (the actor's pass takes a batch as it takes one observation)
+
     def policy(self) -> nn.Module:
         return copy.deepcopy(self.actor).cpu().eval().requires_grad_(False)
 

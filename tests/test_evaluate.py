@@ -1,0 +1,52 @@
+"""A single run's evaluations play their episodes side by side, as a group of one seed does: they measure what
+the agent view measures playing the same episodes one after another."""
+
+from pathlib import Path
+
+import pytest
+
+from layered.plugins import load_plugins
+from layered.agents import make_aec_env
+from layered.evaluate import evaluate
+from layered.group_eval import evaluate_run, open_run_evaluator
+from layered.learner_set import build_learners
+from layered.recipe import load_recipe
+from layered.trainer import phases_of
+
+ROOT = Path(__file__).resolve().parent.parent
+SMALL = ["learner.hidden=[16, 16]"]
+
+
+@pytest.mark.parametrize("recipe, phase", [
+    ("recipes/pendulum/td3.toml", -1),
+    ("recipes/pendulum/tla-c.toml", 0),  # the slow layer alone
+    ("recipes/pendulum/tla-c.toml", -1),  # residual
+    ("recipes/pendulum/tla-o.toml", -1),  # a gate committing and deferring
+    ("recipes/pendulum/temporl.toml", -1),  # repeats
+    ("recipes/research/pendulum-gate-over-residual-3.toml", -1),  # 3 layers
+    ("recipes/inverted-double-pendulum/tla-realtime.toml", -1),  # delays, outputs in flight, early ends
+    ("docs/examples/pendulum-centre.toml", -1),  # a plugin's learner, acting one row at a time
+])
+@pytest.mark.parametrize("episodes", [3, 12])  # fewer episodes than lanes; more, so a lane plays two
+def test_a_runs_evaluation_side_by_side_measures_what_the_agent_view_measures(recipe, phase, episodes):
+    if "centre" in recipe:
+        load_plugins([str(ROOT / "docs/examples/centre.py")])
+    r = load_recipe(ROOT / recipe, [] if "centre" in recipe else SMALL)
+    active = list(phases_of(r)[phase].active)
+    learners = build_learners(r)
+    env = make_aec_env(r, active=active, evaluation=True, keep_trace=True)
+    one_by_one = evaluate(env, learners, episodes, 11)
+    env.close()
+    evaluator = open_run_evaluator(r, active, episodes)
+    try:
+        side_by_side = evaluate_run(evaluator, learners, episodes, 11)
+    finally:
+        evaluator[2].close()
+    assert evaluator[1].rows == min(episodes, 10)
+    assert side_by_side.return_mean == pytest.approx(one_by_one.return_mean, rel=1e-5)
+    assert side_by_side.return_std == pytest.approx(one_by_one.return_std, rel=1e-4, abs=1e-4)
+    assert side_by_side.repetition == one_by_one.repetition and side_by_side.decided == one_by_one.decided
+    assert side_by_side.steps == one_by_one.steps and side_by_side.acted == one_by_one.acted
+    assert side_by_side.compute == one_by_one.compute and side_by_side.decisions == one_by_one.decisions
+    assert side_by_side.contribution == pytest.approx(one_by_one.contribution, rel=1e-5)
+    assert side_by_side.jerk == pytest.approx(one_by_one.jerk, rel=1e-5)
