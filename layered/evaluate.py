@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -38,20 +37,6 @@ def evaluate(
     assert env.keep_trace, "evaluation needs an env made with keep_trace=True"
     seeds = tqdm(episode_seeds(seed, episodes), desc="evaluating", unit="episode", disable=not progress)
     return summarise([run_episode(env, learners, episode_seed) for episode_seed in seeds])
-
-
-def evaluate_thresholds(
-    recipe: Recipe, learners: Mapping[str, Learner], active: list[str], thresholds: Sequence[float],
-    episodes: int, seed: int,
-) -> list[dict[str, Any]]:
-    """One evaluation per threshold (fraction of max action): the paper's return and action
-    frequency against the threshold."""
-    rows = []
-    for threshold in tqdm(thresholds, desc="threshold sweep", unit="threshold"):
-        env = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, keep_trace=True)
-        rows.append({"threshold": threshold, **evaluate(env, learners, episodes, seed).row()})
-        env.close()
-    return rows
 
 
 def distinct_states(points: Sequence[np.ndarray], count: int) -> list[int]:

@@ -35,19 +35,23 @@ def eval_lanes(episodes: int, seeds: int) -> int:
 
 
 def open_stacks(recipe: Recipe, active: Sequence[str], rows: int, evaluation: bool,
-                workers: WorkersSetting | None = None) -> Stacks:
+                workers: WorkersSetting | None = None, threshold: float | None = None) -> Stacks:
     """The stack of the `active` layers, its rules over `rows` rows and their environments (for training, or for
-    an `evaluation`), stepped in `workers` processes (default: the recipe's `env.workers`)."""
+    an `evaluation`, at the recipe's thresholds or `threshold`), stepped in `workers` processes (default: the
+    recipe's `env.workers`)."""
     env = recipe.env
     envs = open_envs(env.id, rows, env.workers if workers is None else workers, env.threads, evaluation)
-    stack = Stack(recipe, envs.observation_space, envs.action_space, active=list(active), evaluation=evaluation)
+    stack = Stack(recipe, envs.observation_space, envs.action_space, active=list(active), evaluation=evaluation,
+                  threshold=threshold)
     return stack, Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, rows), envs
 
 
-def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int) -> Stacks:
-    """A single run's evaluator of `episodes` episodes: the rows of a group of one seed, stepped in this process
-    (as the run's own environment is, so that environments a plugin registers step there too)."""
-    return open_stacks(recipe, active, eval_lanes(episodes, 1), evaluation=True, workers=0)
+def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int, threshold: float | None = None
+                       ) -> Stacks:
+    """A single run's evaluator of `episodes` episodes (at `threshold`, if given): the rows of a group of one seed,
+    stepped in this process (as the run's own environment is, so that environments a plugin registers step there
+    too)."""
+    return open_stacks(recipe, active, eval_lanes(episodes, 1), evaluation=True, workers=0, threshold=threshold)
 
 
 def evaluate_stacks(evaluator: Stacks, greedy: Callable[[str, np.ndarray], np.ndarray], macs: Mapping[str, int],

@@ -59,11 +59,20 @@ def has_threshold(recipe: Recipe) -> bool:
 
 
 def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None) -> list[dict[str, Any]]:
-    """Evaluate at each threshold and write eval/threshold-sweep.csv; its rows."""
-    from layered.evaluate import evaluate_thresholds
+    """One evaluation per threshold (a fraction of the maximum action), its episodes side by side: the paper's
+    return and action frequency against the threshold (Fig. 2). Writes eval/threshold-sweep.csv; its rows."""
+    from tqdm import tqdm
+
+    from layered.group_eval import evaluate_run, open_run_evaluator
 
     episodes = episodes or run.recipe.eval.episodes
-    rows = evaluate_thresholds(run.recipe, run.learners, run.active, thresholds, episodes, run.seed)
+    rows = []
+    for threshold in tqdm(thresholds, desc="threshold sweep", unit="threshold"):
+        evaluator = open_run_evaluator(run.recipe, run.active, episodes, threshold)
+        try:
+            rows.append({"threshold": threshold, **evaluate_run(evaluator, run.learners, episodes, run.seed).row()})
+        finally:
+            evaluator[2].close()
     with (run.eval_dir / SWEEP_FILE).open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()

@@ -32,12 +32,22 @@ def test_a_runs_evaluation_side_by_side_measures_what_the_agent_view_measures(re
     if "centre" in recipe:
         load_plugins([str(ROOT / "docs/examples/centre.py")])
     r = load_recipe(ROOT / recipe, [] if "centre" in recipe else SMALL)
-    active = list(phases_of(r)[phase].active)
+    check_both_ways(r, list(phases_of(r)[phase].active), episodes)
+
+
+@pytest.mark.parametrize("threshold", [0.0, 0.5, 1.0])
+def test_a_threshold_sweeps_evaluations_measure_what_the_agent_view_measures_at_that_threshold(threshold):
+    r = load_recipe(ROOT / "recipes/pendulum/tla-c.toml", SMALL)
+    check_both_ways(r, list(phases_of(r)[-1].active), 3, threshold)
+
+
+def check_both_ways(r, active, episodes, threshold=None):
+    """The same learners' evaluation through the agent view and side by side: the same measures."""
     learners = build_learners(r)
-    env = make_aec_env(r, active=active, evaluation=True, keep_trace=True)
+    env = make_aec_env(r, active=active, evaluation=True, threshold=threshold, keep_trace=True)
     one_by_one = evaluate(env, learners, episodes, 11)
     env.close()
-    evaluator = open_run_evaluator(r, active, episodes)
+    evaluator = open_run_evaluator(r, active, episodes, threshold)
     try:
         side_by_side = evaluate_run(evaluator, learners, episodes, 11)
     finally:
