@@ -172,10 +172,11 @@ def serve(connection: Connection, directory: str, backend: str, name: str, link:
     """The layer process: load the policy, say it is ready, then answer requests until the driver hangs up."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the driver's to handle: it stops this process
     server = Server(directory, backend, name, fault)
-    connection.send(("ready", PROTOCOL, name, os.getpid()))
+    ready = ("ready", PROTOCOL, name, os.getpid())
     if link.mean_s:
-        _serve_over_link(connection, server, link, np.random.default_rng(seed))
+        _serve_over_link(connection, server, link, np.random.default_rng(seed), ready)
         return
+    connection.send(ready)
     while (request := _receive_or_none(connection)) is not None:
         reply = server.answer(request)
         if reply is None:
@@ -195,10 +196,13 @@ def _receive_or_none(connection: Connection) -> object:
         return None
 
 
-def _serve_over_link(connection: Connection, server: Server, link: Link, rng: np.random.Generator) -> None:
+def _serve_over_link(connection: Connection, server: Server, link: Link, rng: np.random.Generator,
+                     ready: object) -> None:
     """Answer as `serve` does, each message held for a sample of the link's delay on its way in and out.
     A link delays messages without holding up the ones behind them: a reader thread stamps each
-    request's arrival, and a writer thread sends each reply at its own release time."""
+    request's arrival, and a writer thread sends each reply at its own release time. Says `ready` once both
+    run, so that the driver's clock does not start while they are still starting (on a busy machine the
+    first answer then came late enough to be taken for a stall)."""
     inbox: queue.Queue[tuple[float, object]] = queue.Queue()
     outbox: queue.Queue[tuple[float, object] | None] = queue.Queue()
 
@@ -221,6 +225,7 @@ def _serve_over_link(connection: Connection, server: Server, link: Link, rng: np
     threading.Thread(target=read, daemon=True).start()
     writer = threading.Thread(target=write, daemon=True)
     writer.start()
+    connection.send(ready)
     stalled = False
     while (item := inbox.get())[1] is not None:
         arrival, request = item
