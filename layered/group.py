@@ -515,8 +515,7 @@ class Group:
     def _evaluations(self, phase: Phase, evaluator: Stacks, episodes: int, offset: int) -> list[Evaluation]:
         """Each seed's evaluation of its present layers over `episodes` episodes seeded from its seed + `offset`, as
         many side by side as the evaluator has lanes."""
-        macs = {self.names[i]: self.learners[self.names[i]].act_macs() for i in evaluator[0].active}
-        return evaluate_stacks(evaluator, lambda name, obs: self.learners[name].greedy(obs), macs, episodes,
+        return evaluate_stacks(evaluator, self.learners, lambda learner, obs: learner.greedy(obs), episodes,
                                [seed.recipe.train.seed + offset for seed in self.seeds])
 
     def _finish_phase(self, phase: Phase, results: list[PhaseResult]) -> list[dict[str, Any]]:

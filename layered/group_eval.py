@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from typing import Any
 
 import numpy as np
 import torch
@@ -35,41 +36,46 @@ def eval_lanes(episodes: int, seeds: int) -> int:
 
 
 def open_stacks(recipe: Recipe, active: Sequence[str], rows: int, evaluation: bool,
-                workers: WorkersSetting | None = None, threshold: float | None = None) -> Stacks:
+                workers: WorkersSetting | None = None) -> Stacks:
     """The stack of the `active` layers, its rules over `rows` rows and their environments (for training, or for
-    an `evaluation`, at the recipe's thresholds or `threshold`), stepped in `workers` processes (default: the
-    recipe's `env.workers`)."""
+    an `evaluation`), stepped in `workers` processes (default: the recipe's `env.workers`)."""
     env = recipe.env
     envs = open_envs(env.id, rows, env.workers if workers is None else workers, env.threads, evaluation)
+    return stacks_over(recipe, active, envs, rows, evaluation)
+
+
+def stacks_over(recipe: Recipe, active: Sequence[str], envs: Envs, rows: int, evaluation: bool,
+                threshold: float | None = None) -> Stacks:
+    """The stack of the `active` layers (at the recipe's evaluation thresholds, or `threshold`) and its rules over
+    the `rows` rows of `envs`: a threshold sweep's stacks, one per threshold, over the same environments."""
     stack = Stack(recipe, envs.observation_space, envs.action_space, active=list(active), evaluation=evaluation,
                   threshold=threshold)
     return stack, Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, rows), envs
 
 
-def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int, threshold: float | None = None
-                       ) -> Stacks:
-    """A single run's evaluator of `episodes` episodes (at `threshold`, if given): the rows of a group of one seed,
-    stepped in this process (as the run's own environment is, so that environments a plugin registers step there
-    too)."""
-    return open_stacks(recipe, active, eval_lanes(episodes, 1), evaluation=True, workers=0, threshold=threshold)
+def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int) -> Stacks:
+    """A single run's evaluator of `episodes` episodes: the rows of a group of one seed, stepped in this process
+    (as the run's own environment is, so that environments a plugin registers step there too)."""
+    return open_stacks(recipe, active, eval_lanes(episodes, 1), evaluation=True, workers=0)
 
 
-def evaluate_stacks(evaluator: Stacks, greedy: Callable[[str, np.ndarray], np.ndarray], macs: Mapping[str, int],
+def evaluate_stacks(evaluator: Stacks, learners: Mapping[str, Any], greedy: Callable[[Any, np.ndarray], np.ndarray],
                     episodes: int, seeds: Sequence[int]) -> list[Evaluation]:
-    """`evaluate_group` of the evaluator's rows, a layer's policy named by its layer: `greedy(name, obs)`, its outputs
-    without exploration ([K, n, obs] -> [K, n, size]); `macs`, its cost per decision."""
+    """`evaluate_group` of the evaluator's rows, each layer acting through its learner in `learners` (a single
+    learner or one stacked over the seeds): `greedy(learner, obs)`, its outputs without exploration ([K, n, obs]
+    -> [K, n, size])."""
     stack, rules, envs = evaluator
     names = [layer.name for layer in stack.layers]
+    macs = {names[i]: learners[names[i]].act_macs() for i in stack.active}
     with torch_aside(envs):
-        return evaluate_group(rules, envs, lambda i, obs: greedy(names[i], obs),
-                              {names[i]: macs[names[i]] for i in stack.active}, episodes, seeds)
+        return evaluate_group(rules, envs, lambda i, obs: greedy(learners[names[i]], obs), macs, episodes, seeds)
 
 
 def evaluate_run(evaluator: Stacks, learners: Mapping[str, Learner], episodes: int, seed: int) -> Evaluation:
     """A single run's evaluation of its present layers over `episodes` episodes seeded from `seed`: what
     `layered.evaluate.evaluate` measures through the agent view, the episodes played side by side."""
-    macs = {name: learner.act_macs() for name, learner in learners.items()}
-    return evaluate_stacks(evaluator, lambda name, obs: learners[name].greedy(obs[0])[None], macs, episodes, [seed])[0]
+    return evaluate_stacks(evaluator, learners, lambda learner, obs: learner.greedy(obs[0])[None], episodes,
+                           [seed])[0]
 
 
 def all_rows(seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:

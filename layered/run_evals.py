@@ -63,16 +63,17 @@ def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | No
     return and action frequency against the threshold (Fig. 2). Writes eval/threshold-sweep.csv; its rows."""
     from tqdm import tqdm
 
-    from layered.group_eval import evaluate_run, open_run_evaluator
+    from layered.group_eval import evaluate_run, open_run_evaluator, stacks_over
 
     episodes = episodes or run.recipe.eval.episodes
     rows = []
-    for threshold in tqdm(thresholds, desc="threshold sweep", unit="threshold"):
-        evaluator = open_run_evaluator(run.recipe, run.active, episodes, threshold)
-        try:
-            rows.append({"threshold": threshold, **evaluate_run(evaluator, run.learners, episodes, run.seed).row()})
-        finally:
-            evaluator[2].close()
+    _, rules, envs = open_run_evaluator(run.recipe, run.active, episodes)
+    try:
+        for threshold in tqdm(thresholds, desc="threshold sweep", unit="threshold"):
+            at = stacks_over(run.recipe, run.active, envs, rules.rows, evaluation=True, threshold=threshold)
+            rows.append({"threshold": threshold, **evaluate_run(at, run.learners, episodes, run.seed).row()})
+    finally:
+        envs.close()
     with (run.eval_dir / SWEEP_FILE).open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()

@@ -8,7 +8,7 @@ import pytest
 from layered.plugins import load_plugins
 from layered.agents import make_aec_env
 from layered.evaluate import evaluate
-from layered.group_eval import evaluate_run, open_run_evaluator
+from layered.group_eval import evaluate_run, open_run_evaluator, stacks_over
 from layered.learner_set import build_learners
 from layered.recipe import load_recipe
 from layered.trainer import phases_of
@@ -47,7 +47,9 @@ def check_both_ways(r, active, episodes, threshold=None):
     env = make_aec_env(r, active=active, evaluation=True, threshold=threshold, keep_trace=True)
     one_by_one = evaluate(env, learners, episodes, 11)
     env.close()
-    evaluator = open_run_evaluator(r, active, episodes, threshold)
+    evaluator = open_run_evaluator(r, active, episodes)
+    if threshold is not None:  # (as a threshold sweep evaluates: a stack at that threshold over the same rows)
+        evaluator = stacks_over(r, active, evaluator[2], evaluator[1].rows, evaluation=True, threshold=threshold)
     try:
         side_by_side = evaluate_run(evaluator, learners, episodes, 11)
     finally:
