@@ -41,16 +41,17 @@ def open_stacks(recipe: Recipe, active: Sequence[str], rows: int, evaluation: bo
     an `evaluation`), stepped in `workers` processes (default: the recipe's `env.workers`)."""
     env = recipe.env
     envs = open_envs(env.id, rows, env.workers if workers is None else workers, env.threads, evaluation)
-    return stacks_over(recipe, active, envs, rows, evaluation)
+    return stacks_over(recipe, active, envs, evaluation)
 
 
-def stacks_over(recipe: Recipe, active: Sequence[str], envs: Envs, rows: int, evaluation: bool,
+def stacks_over(recipe: Recipe, active: Sequence[str], envs: Envs, evaluation: bool,
                 threshold: float | None = None) -> Stacks:
     """The stack of the `active` layers (at the recipe's evaluation thresholds, or `threshold`) and its rules over
-    the `rows` rows of `envs`: a threshold sweep's stacks, one per threshold, over the same environments."""
+    the rows of `envs`: a threshold sweep's stacks, one per threshold, over the same environments."""
     stack = Stack(recipe, envs.observation_space, envs.action_space, active=list(active), evaluation=evaluation,
                   threshold=threshold)
-    return stack, Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, rows), envs
+    rules = Rules([layer.rules for layer in stack.layers], stack.active, stack.low, stack.high, len(envs.obs))
+    return stack, rules, envs
 
 
 def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int) -> Stacks:

@@ -67,10 +67,10 @@ def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | No
 
     episodes = episodes or run.recipe.eval.episodes
     rows = []
-    _, rules, envs = open_run_evaluator(run.recipe, run.active, episodes)
+    envs = open_run_evaluator(run.recipe, run.active, episodes)[2]
     try:
         for threshold in tqdm(thresholds, desc="threshold sweep", unit="threshold"):
-            at = stacks_over(run.recipe, run.active, envs, rules.rows, evaluation=True, threshold=threshold)
+            at = stacks_over(run.recipe, run.active, envs, evaluation=True, threshold=threshold)
             rows.append({"threshold": threshold, **evaluate_run(at, run.learners, episodes, run.seed).row()})
     finally:
         envs.close()

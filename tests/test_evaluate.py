@@ -49,7 +49,7 @@ def check_both_ways(r, active, episodes, threshold=None):
     env.close()
     evaluator = open_run_evaluator(r, active, episodes)
     if threshold is not None:  # (as a threshold sweep evaluates: a stack at that threshold over the same rows)
-        evaluator = stacks_over(r, active, evaluator[2], evaluator[1].rows, evaluation=True, threshold=threshold)
+        evaluator = stacks_over(r, active, evaluator[2], evaluation=True, threshold=threshold)
     try:
         side_by_side = evaluate_run(evaluator, learners, episodes, 11)
     finally:
