@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from layered.compare import COLUMNS, between_phases, between_setups, comparisons_table, csv_row
+
 
 def _activity(row: dict[str, Any], prefix: str, fmt: str = "{:.0%}") -> str:
     return ", ".join(f"{k[len(prefix):]} {fmt.format(v)}" for k, v in row.items() if k.startswith(prefix))
@@ -309,7 +311,8 @@ def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str
 
 
 def write_report(setups: Sequence[Any], out: Path) -> str:
-    """Tables 1-3 as Markdown (report.md) and CSV (summary.csv), and learning curves (curves.png)."""
+    """Tables 1-3 as Markdown (report.md) and CSV (summary.csv), the setups and phases compared over seeds
+    (comparisons.csv), and learning curves (curves.png)."""
     out.mkdir(parents=True, exist_ok=True)
     turn = [s for s in setups if not s.realtime]
     realtime = [s for s in setups if s.realtime]
@@ -333,6 +336,16 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
                   "weights of its best evaluation (the paper's protocol), both on `eval.fresh_episodes` episodes "
                   "of a seed never used for choosing; \"best as selected\" is that best evaluation's own return, "
                   "biased upwards by the choice.", "", wide_table(setups, FINAL_AND_BEST), ""]
+    compared = between_setups(setups) + between_phases(setups)
+    if compared:
+        parts += ["## Comparisons over seeds", "",
+                  "Each finished setup against each one listed before it for the same environment, as independent "
+                  "samples of seeds (Welch's t-test), and each phase of a stack trained in phases against the phase "
+                  "before it, seed by seed (a paired t-test): the difference of the means with its 95% confidence "
+                  "interval, the two-sided p-value, and how often the first is above the second (over all pairs of a "
+                  "seed of each, or over the seeds; ties count half). With few seeds these tests have little power: a "
+                  "p-value above 0.05 says that the seeds do not tell the two apart, not that the two are the same. "
+                  "The rows are in `comparisons.csv`.", "", comparisons_table(compared), ""]
     parts += ["## Per seed", "",
               "Each seed's last phase: its final evaluation's return, AUC, and its final and best weights on fresh "
               "episodes (with the best evaluation's step and the best weights' action repetition, AR); for a stack "
@@ -353,6 +366,10 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
             stats = [v for k in keys for v in s.stat(k)]
             writer.writerow([s.env, s.label, s.method, " ".join(str(r.seed) for r in s.runs), *stats])
     write_seeds_csv(setups, out / "seeds.csv")
+    with (out / "comparisons.csv").open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(COLUMNS)
+        writer.writerows(csv_row(r) for r in compared)
     plot_setup_curves(setups, out / "curves.png")
     return text
 

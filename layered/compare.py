@@ -1,0 +1,161 @@
+"""Whether two sets of seeds differ: the tests `layered report` puts beside its means and standard deviations.
+
+Two setups of one environment are compared as independent samples of seeds with Welch's t-test, which
+does not assume equal variances (as Colas et al., 2018, "How many random seeds?", recommend for RL); the
+phases of a stack trained in phases, each against the phase before it, seed by seed, with a paired t-test
+on the seeds' differences (the same seed's stack before and after). Each comparison gives the difference of
+the means with its 95% confidence interval and a two-sided p-value, and how often the first comes out above
+the second: over every pair of a seed of each (the probability of improvement of Agarwal et al., 2021), or
+over the seeds; ties count half.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+LEVEL = 0.95  # of the confidence intervals
+
+MEASURES: tuple[tuple[str, str, str], ...] = (
+    ("fresh_best_return_mean", "return, best weights", "{:+.1f}"),
+    ("fresh_final_return_mean", "return, final weights", "{:+.1f}"),
+    ("return_mean", "return, final evaluation", "{:+.1f}"),
+    ("auc", "AUC", "{:+.3f}"),
+)
+"""What setups are compared on (a `results.json` key, its name, the format of a difference), where every run
+of both has it; phases are compared on the first two, the fresh-episode returns each phase records."""
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """The first sample of seeds against the second."""
+
+    difference: float  # the first's mean less the second's
+    low: float  # the difference's confidence interval at LEVEL
+    high: float
+    p: float  # two-sided p-value of no difference
+    above: float  # share of the pairs of a seed of each (paired: of the seeds) in which the first is above
+    sizes: tuple[int, int]  # seeds in each
+
+
+def welch(first: Sequence[float], second: Sequence[float]) -> Comparison | None:
+    """Two independent samples (a setup's seeds against another's) by Welch's t-test; None where either has
+    fewer than two values (no spread to test against)."""
+    a, b = np.asarray(first, np.float64), np.asarray(second, np.float64)
+    if len(a) < 2 or len(b) < 2:
+        return None
+    va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)  # each mean's variance
+    df = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1)) if va + vb > 0 else math.inf
+    above = float(np.mean((a[:, None] > b[None]) + 0.5 * (a[:, None] == b[None])))
+    return _t_test(float(a.mean() - b.mean()), math.sqrt(va + vb), df, above, (len(a), len(b)))
+
+
+def paired(first: Sequence[float], second: Sequence[float]) -> Comparison | None:
+    """Two samples of the same seeds (`first[k]` and `second[k]` of seed k) by a paired t-test on their
+    differences; None for fewer than two seeds."""
+    a, b = np.asarray(first, np.float64), np.asarray(second, np.float64)
+    if len(a) != len(b):
+        raise ValueError(f"paired samples of {len(a)} and {len(b)} values")
+    d = a - b
+    if len(d) < 2:
+        return None
+    above = float(np.mean((d > 0) + 0.5 * (d == 0)))
+    return _t_test(float(d.mean()), float(d.std(ddof=1)) / math.sqrt(len(d)), len(d) - 1, above, (len(a), len(b)))
+
+
+def _t_test(difference: float, se: float, df: float, above: float, sizes: tuple[int, int]) -> Comparison:
+    """The difference's interval and p-value from its standard error on Student's t with `df` degrees."""
+    from scipy import stats  # (imported when a report compares: it is large)
+
+    if se == 0:  # no spread in either sample: the difference is exactly what it is
+        return Comparison(difference, difference, difference, 1.0 if difference == 0 else 0.0, above, sizes)
+    margin = float(stats.t.ppf(0.5 + LEVEL / 2, df)) * se
+    p = float(2 * stats.t.sf(abs(difference) / se, df))
+    return Comparison(difference, difference - margin, difference + margin, p, above, sizes)
+
+
+@dataclass(frozen=True)
+class Row:
+    """One comparison of a report: what is compared with what, on which measure."""
+
+    env: str
+    first: str
+    second: str
+    measure: str
+    fmt: str
+    paired: bool
+    comparison: Comparison
+
+
+def _values(runs: Sequence[Any], key: str, phase: int | None = None) -> list[float] | None:
+    """Each run's value of `key` (in its last phase's results, or phase `phase`'s); None unless every run has one."""
+    found = []
+    for run in runs:
+        results = run.final if phase is None else (run.phases[phase] if phase < len(run.phases) else {})
+        value = results.get(key)
+        if not isinstance(value, int | float) or isinstance(value, bool) or value != value:
+            return None
+        found.append(float(value))
+    return found
+
+
+def between_setups(setups: Sequence[Any]) -> list[Row]:
+    """Each finished setup against each listed before it in the same environment (the paper's baselines come
+    first), on every measure of `MEASURES` that all their runs have."""
+    rows = []
+    done = [s for s in setups if all(r.finished for r in s.runs)]
+    for i, later in enumerate(done):
+        for earlier in (s for s in done[:i] if s.env == later.env):
+            for key, name, fmt in MEASURES:
+                a, b = _values(later.runs, key), _values(earlier.runs, key)
+                if a is not None and b is not None and (result := welch(a, b)) is not None:
+                    rows.append(Row(later.env, later.method, earlier.method, name, fmt, False, result))
+    return rows
+
+
+def between_phases(setups: Sequence[Any]) -> list[Row]:
+    """In each finished setup trained in phases, each phase against the one before it, seed by seed, on the
+    returns of its best and its final weights on fresh episodes (for TLA: the stack against its slow layer alone)."""
+    rows = []
+    for s in (s for s in setups if all(r.finished for r in s.runs)):
+        phases = s.runs[0].phases
+        for p in range(1, min(len(r.phases) for r in s.runs)):
+            for key, name, fmt in MEASURES[:2]:
+                a, b = _values(s.runs, key, p), _values(s.runs, key, p - 1)
+                if a is not None and b is not None and (result := paired(a, b)) is not None:
+                    rows.append(Row(s.env, f"{s.method} phase {p} ({_learns(phases[p])})",
+                                    f"phase {p - 1} ({_learns(phases[p - 1])})", name, fmt, True, result))
+    return rows
+
+
+def _learns(phase: dict[str, Any]) -> str:
+    return "+".join(phase.get("learn", [])) or "?"
+
+
+def comparisons_table(rows: Sequence[Row]) -> str:
+    """The comparisons as a Markdown table."""
+    lines = ["| environment | first | second | seeds | measure | first - second [95% CI] | p | first above |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        c = r.comparison
+        n, m = c.sizes
+        seeds = f"{n}, paired" if r.paired else f"{n} and {m}"
+        above = f"{c.above * n:g} of {n} seeds" if r.paired else f"{c.above:.2f} of seed pairs"
+        lines.append(f"| {r.env} | {r.first} | {r.second} | {seeds} | {r.measure} | {r.fmt.format(c.difference)} "
+                     f"[{r.fmt.format(c.low)}, {r.fmt.format(c.high)}] | {c.p:.3g} | {above} |")
+    return "\n".join(lines)
+
+
+COLUMNS = ("env", "first", "second", "measure", "paired", "first_seeds", "second_seeds", "difference", "low",
+           "high", "p", "first_above")
+"""The columns of a report's `comparisons.csv`."""
+
+
+def csv_row(r: Row) -> list[Any]:
+    """A comparison as a row of `COLUMNS`."""
+    c = r.comparison
+    return [r.env, r.first, r.second, r.measure, r.paired, *c.sizes, c.difference, c.low, c.high, c.p, c.above]

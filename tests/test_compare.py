@@ -1,0 +1,113 @@
+"""The tests of seeds against seeds (`layered.compare`), checked against values worked out by hand, and the report's
+comparisons of setups and phases."""
+
+import csv
+import math
+from pathlib import Path
+
+import pytest
+
+from layered.compare import paired, welch
+from layered.report import write_report
+from layered.summary import Run, group
+
+# Student's t with 2 degrees of freedom has a closed form: two-sided p = 1 - |t| / sqrt(2 + t^2), and its
+# 0.975 quantile is 0.95 / sqrt(2 * 0.975 * 0.025)
+T2_975 = 0.95 / math.sqrt(2 * 0.975 * 0.025)  # 4.3027
+
+
+def p_two_sided_df2(t):
+    return 1 - abs(t) / math.sqrt(2 + t * t)
+
+
+def test_welch_by_hand():
+    # means 2 and 1, sample variances 2 and 2: the difference's standard error sqrt(2/2 + 2/2), and Welch's
+    # degrees of freedom (1 + 1)^2 / (1^2 / 1 + 1^2 / 1) = 2
+    c = welch([1.0, 3.0], [0.0, 2.0])
+    se = math.sqrt(2.0)
+    assert c.difference == pytest.approx(1.0)
+    assert c.p == pytest.approx(p_two_sided_df2(1.0 / se))  # 0.5528
+    assert (c.low, c.high) == pytest.approx((1.0 - T2_975 * se, 1.0 + T2_975 * se))  # -5.085, 7.085
+    assert c.above == 0.75  # 1 > 0, 3 > 0, 3 > 2; not 1 > 2
+    assert c.sizes == (2, 2)
+
+
+def test_welch_weighs_each_sample_by_its_own_spread():
+    # variances 1 and 4 over 3 seeds each: standard error sqrt(1/3 + 4/3), degrees (5/3)^2 / ((1/3)^2/2 + (4/3)^2/2)
+    c = welch([1.0, 2.0, 3.0], [2.0, 4.0, 6.0])
+    se, df = math.sqrt(5 / 3), (5 / 3) ** 2 / ((1 / 3) ** 2 / 2 + (4 / 3) ** 2 / 2)
+    assert df == pytest.approx(50 / 17)
+    from scipy import stats
+
+    assert c.p == pytest.approx(2 * stats.t.sf(2.0 / se, 50 / 17))
+    assert c.difference == -2.0 and c.above == pytest.approx(1.5 / 9)  # 3 > 2, and 2 ties 2: of nine pairs
+
+
+def test_ties_count_half():
+    assert welch([1.0, 2.0], [1.0, 1.0]).above == 0.75  # (1, 1) twice half, (2, 1) twice whole
+    assert paired([1.0, 2.0, 3.0], [1.0, 1.0, 4.0]).above == pytest.approx(0.5)  # tie, above, below
+
+
+def test_paired_by_hand():
+    # differences 2, 3, 0: mean 5/3, sample standard deviation sqrt(7/3), 2 degrees of freedom
+    c = paired([3.0, 5.0, 4.0], [1.0, 2.0, 4.0])
+    se = math.sqrt(7 / 3) / math.sqrt(3)
+    assert c.difference == pytest.approx(5 / 3)
+    assert c.p == pytest.approx(p_two_sided_df2((5 / 3) / se))  # 0.1994
+    assert (c.low, c.high) == pytest.approx((5 / 3 - T2_975 * se, 5 / 3 + T2_975 * se))
+    assert c.above == pytest.approx(2.5 / 3)
+
+
+def test_no_spread_and_too_few_seeds():
+    assert welch([1.0], [2.0, 3.0]) is None and paired([1.0], [2.0]) is None
+    same = welch([5.0, 5.0], [5.0, 5.0])
+    assert (same.difference, same.low, same.high, same.p) == (0.0, 0.0, 0.0, 1.0)
+    apart = welch([1000.0, 1000.0], [900.0, 900.0])
+    assert (apart.difference, apart.low, apart.high, apart.p, apart.above) == (100.0, 100.0, 100.0, 0.0, 1.0)
+    with pytest.raises(ValueError, match="paired samples of 2 and 3"):
+        paired([1.0, 2.0], [1.0, 2.0, 3.0])
+
+
+def _run(label, seed, phases, finished=True):
+    final = {k: v for k, v in phases[-1].items() if k != "learn"}
+    return Run(Path(f"/r/{label}-{seed}"), "Hopper-v5", label, seed, True, final, ((0, 1.0),), phases=tuple(phases),
+               stands="" if finished else "phase 1, step 100")
+
+
+def test_the_report_compares_setups_and_each_phase_with_the_one_before(tmp_path):
+    def td3(seed, best):
+        return _run("hopper/td3-realtime", seed, [{"phase": 0, "learn": ["fast"], "fresh_best_return_mean": best}])
+
+    def tla(seed, slow, best):
+        return _run("hopper/tla-realtime", seed, [{"phase": 0, "learn": ["slow"], "fresh_best_return_mean": slow},
+                                                  {"phase": 1, "learn": ["fast"], "fresh_best_return_mean": best}])
+
+    runs = [td3(0, 0.0), td3(1, 2.0), td3(2, 1.0), tla(0, 1.0, 3.0), tla(1, 2.0, 5.0), tla(2, 4.0, 4.0)]
+    text = write_report(group(runs), tmp_path)
+    rows = list(csv.DictReader((tmp_path / "comparisons.csv").open()))
+    assert [(r["first"], r["second"], r["paired"]) for r in rows] == [
+        ("tla-realtime", "td3-realtime", "False"), ("tla-realtime phase 1 (fast)", "phase 0 (slow)", "True")]
+    between, phases = rows
+    # TLA 3, 5, 4 against TD3 0, 2, 1: means 4 and 1, variances 1 and 1, so se = sqrt(2/3) and df = 4
+    from scipy import stats
+
+    assert float(between["difference"]) == pytest.approx(3.0)
+    assert float(between["p"]) == pytest.approx(2 * stats.t.sf(3.0 / math.sqrt(2 / 3), 4))
+    assert float(between["first_above"]) == 1.0 and between["measure"] == "return, best weights"
+    # phase 1 against phase 0 seed by seed: 3 - 1, 5 - 2, 4 - 4, as in test_paired_by_hand
+    assert float(phases["difference"]) == pytest.approx(5 / 3)
+    assert float(phases["p"]) == pytest.approx(p_two_sided_df2((5 / 3) / (math.sqrt(7 / 3) / math.sqrt(3))))
+    assert "| Hopper-v5 | tla-realtime | td3-realtime | 3 and 3 | return, best weights | +3.0 [" in text
+    assert "| 1.00 of seed pairs |" in text
+    assert "| tla-realtime phase 1 (fast) | phase 0 (slow) | 3, paired | return, best weights | +1.7 [" in text
+    assert "| 2.5 of 3 seeds |" in text
+
+
+def test_unfinished_setups_are_not_compared(tmp_path):
+    one = [{"phase": 0, "learn": ["fast"], "return_mean": 1.0}]
+    runs = [_run("hopper/td3-realtime", s, one) for s in (0, 1)] + [
+        _run("hopper/tla-realtime", s, one, finished=False) for s in (0, 1)]
+    text = write_report(group(runs), tmp_path)
+    assert "## Comparisons over seeds" not in text
+    assert (tmp_path / "comparisons.csv").read_text().splitlines() == [
+        "env,first,second,measure,paired,first_seeds,second_seeds,difference,low,high,p,first_above"]
