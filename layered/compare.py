@@ -104,12 +104,12 @@ def _values(runs: Sequence[Any], key: str, phase: int | None = None) -> list[flo
 
 
 def between_setups(setups: Sequence[Any]) -> list[Row]:
-    """Each finished setup against each listed before it in the same environment (the paper's baselines come
-    first), on every measure of `MEASURES` that all their runs have."""
+    """Each finished setup against each listed before it in the same environment and setting (the real-time one
+    or not; the paper's baselines come first), on every measure of `MEASURES` that all their runs have."""
     rows = []
     done = [s for s in setups if all(r.finished for r in s.runs)]
     for i, later in enumerate(done):
-        for earlier in (s for s in done[:i] if s.env == later.env):
+        for earlier in (s for s in done[:i] if (s.env, s.realtime) == (later.env, later.realtime)):
             for key, name, fmt in MEASURES:
                 a, b = _values(later.runs, key), _values(earlier.runs, key)
                 if a is not None and b is not None and (result := welch(a, b)) is not None:

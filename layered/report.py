@@ -339,13 +339,14 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
     compared = between_setups(setups) + between_phases(setups)
     if compared:
         parts += ["## Comparisons over seeds", "",
-                  "Each finished setup against each one listed before it for the same environment, as independent "
-                  "samples of seeds (Welch's t-test), and each phase of a stack trained in phases against the phase "
-                  "before it, seed by seed (a paired t-test): the difference of the means with its 95% confidence "
-                  "interval, the two-sided p-value, and how often the first is above the second (over all pairs of a "
-                  "seed of each, or over the seeds; ties count half). With few seeds these tests have little power: a "
-                  "p-value above 0.05 says that the seeds do not tell the two apart, not that the two are the same. "
-                  "The rows are in `comparisons.csv`.", "", comparisons_table(compared), ""]
+                  "Each finished setup against each one listed before it for the same environment and setting "
+                  "(real-time or not), as independent samples of seeds (Welch's t-test), and each phase of a stack "
+                  "trained in phases against the phase before it, seed by seed (a paired t-test): the difference of "
+                  "the means with its 95% confidence interval, the two-sided p-value, and how often the first is above "
+                  "the second (over all pairs of a seed of each, or over the seeds; ties count half). With few seeds "
+                  "these tests have little power: a p-value above 0.05 says that the seeds do not tell the two apart, "
+                  "not that the two are the same. The rows are in `comparisons.csv`.", "", comparisons_table(compared),
+                  ""]
     parts += ["## Per seed", "",
               "Each seed's last phase: its final evaluation's return, AUC, and its final and best weights on fresh "
               "episodes (with the best evaluation's step and the best weights' action repetition, AR); for a stack "

@@ -68,10 +68,10 @@ def test_no_spread_and_too_few_seeds():
         paired([1.0, 2.0], [1.0, 2.0, 3.0])
 
 
-def _run(label, seed, phases, finished=True):
+def _run(label, seed, phases, finished=True, realtime=True):
     final = {k: v for k, v in phases[-1].items() if k != "learn"}
-    return Run(Path(f"/r/{label}-{seed}"), "Hopper-v5", label, seed, True, final, ((0, 1.0),), phases=tuple(phases),
-               stands="" if finished else "phase 1, step 100")
+    return Run(Path(f"/r/{label}-{seed}"), "Hopper-v5", label, seed, realtime, final, ((0, 1.0),),
+               phases=tuple(phases), stands="" if finished else "phase 1, step 100")
 
 
 def test_the_report_compares_setups_and_each_phase_with_the_one_before(tmp_path):
@@ -103,10 +103,11 @@ def test_the_report_compares_setups_and_each_phase_with_the_one_before(tmp_path)
     assert "| 2.5 of 3 seeds |" in text
 
 
-def test_unfinished_setups_are_not_compared(tmp_path):
+@pytest.mark.parametrize("other", ["unfinished", "not real-time"])
+def test_unfinished_setups_and_other_settings_are_not_compared(tmp_path, other):
     one = [{"phase": 0, "learn": ["fast"], "return_mean": 1.0}]
     runs = [_run("hopper/td3-realtime", s, one) for s in (0, 1)] + [
-        _run("hopper/tla-realtime", s, one, finished=False) for s in (0, 1)]
+        _run("hopper/tla", s, one, finished=other != "unfinished", realtime=other != "not real-time") for s in (0, 1)]
     text = write_report(group(runs), tmp_path)
     assert "## Comparisons over seeds" not in text
     assert (tmp_path / "comparisons.csv").read_text().splitlines() == [
