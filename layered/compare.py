@@ -95,8 +95,7 @@ def _values(runs: Sequence[Any], key: str, phase: int | None = None) -> list[flo
     """Each run's value of `key` (in its last phase's results, or phase `phase`'s); None unless every run has one."""
     found = []
     for run in runs:
-        results = run.final if phase is None else (run.phases[phase] if phase < len(run.phases) else {})
-        value = results.get(key)
+        value = (run.final if phase is None else run.phases[phase]).get(key)
         if not isinstance(value, int | float) or isinstance(value, bool) or value != value:
             return None
         found.append(float(value))
