@@ -91,15 +91,15 @@ class Row:
     comparison: Comparison
 
 
+def number(value: Any) -> float:
+    """A measure's value in a run's results, NaN where the run has none."""
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else float("nan")
+
+
 def _values(runs: Sequence[Any], key: str, phase: int | None = None) -> list[float] | None:
     """Each run's value of `key` (in its last phase's results, or phase `phase`'s); None unless every run has one."""
-    found = []
-    for run in runs:
-        value = (run.final if phase is None else run.phases[phase]).get(key)
-        if not isinstance(value, int | float) or isinstance(value, bool) or value != value:
-            return None
-        found.append(float(value))
-    return found
+    found = [number((run.final if phase is None else run.phases[phase]).get(key)) for run in runs]
+    return None if any(v != v for v in found) else found
 
 
 def between_setups(setups: Sequence[Any]) -> list[Row]:

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from layered.compare import COLUMNS, between_phases, between_setups, comparisons_table, csv_row
+from layered.compare import COLUMNS, between_phases, between_setups, comparisons_table, csv_row, number
 
 
 def _activity(row: dict[str, Any], prefix: str, fmt: str = "{:.0%}") -> str:
@@ -204,11 +204,6 @@ def seeds_table(setups: Sequence[Any]) -> str:
     return "\n".join(lines)
 
 
-def _number(value: Any) -> float:
-    """A measure's value, NaN where a run has none."""
-    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else float("nan")
-
-
 def per_seed_table(setup: Any) -> str:
     """One row per seed of a setup: its last phase's measures and, where the stack trained in phases, each
     earlier phase's best weights on fresh episodes (for TLA, the slow layer alone), so that what the means
@@ -216,8 +211,8 @@ def per_seed_table(setup: Any) -> str:
     earlier = [(i, p) for i, p in enumerate(setup.runs[0].phases[:-1]) if "fresh_best_return_mean" in p]
     columns = [(f"phase {p['phase']} ({'+'.join(p.get('learn', []))}): best", "{:.1f}") for _, p in earlier]
     columns += [(name, fmt) for _, name, fmt in PER_SEED]
-    table = np.array([[_number(r.phases[i].get("fresh_best_return_mean")) if i < len(r.phases) - 1 else np.nan
-                       for i, _ in earlier] + [_number(r.final.get(key)) for key, _, _ in PER_SEED]
+    table = np.array([[number(r.phases[i].get("fresh_best_return_mean")) if i < len(r.phases) - 1 else np.nan
+                       for i, _ in earlier] + [number(r.final.get(key)) for key, _, _ in PER_SEED]
                       for r in setup.runs])
     lines = ["| " + " | ".join(["seed", *(name for name, _ in columns)]) + " |", "|---" * (len(columns) + 1) + "|"]
     for r, values in zip(setup.runs, table, strict=True):
@@ -233,7 +228,7 @@ def write_seeds_csv(setups: Sequence[Any], path: Path) -> None:
     """Every phase of every run on a row of its own (setup, seed, phase, what it learned and every measure of
     `results.json`), for analyses of one's own."""
     rows = [(s, r, p) for s in setups for r in s.runs for p in (r.phases or (r.final,))]
-    keys = sorted({k for _, _, p in rows for k, v in p.items() if k != "phase" and not np.isnan(_number(v))})
+    keys = sorted({k for _, _, p in rows for k, v in p.items() if k != "phase" and not np.isnan(number(v))})
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["env", "label", "method", "seed", "phase", "learn", *keys])
