@@ -6,14 +6,15 @@ phases of a stack trained in phases, each against the phase before it, seed by s
 on the seeds' differences (the same seed's stack before and after). Each comparison gives the difference of
 the means with its 95% confidence interval and a two-sided p-value, and how often the first comes out above
 the second: over every pair of a seed of each (the probability of improvement of Agarwal et al., 2021), or
-over the seeds; ties count half.
+over the seeds; ties count half. Since a report makes many such tests at once, each p-value also comes adjusted
+for all of them by Holm's step-down method, which holds the chance of any false "p < 0.05" in the report to 5%.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -89,6 +90,23 @@ class Row:
     fmt: str
     paired: bool
     comparison: Comparison
+    p_holm: float = math.nan  # the p-value adjusted for all the report's comparisons (`adjusted`)
+
+
+def holm(ps: Sequence[float]) -> list[float]:
+    """Holm's step-down adjustment of m p-values, in their order: the i-th smallest becomes the largest of
+    (m - j + 1) p_(j) over j <= i, at most 1, so that "adjusted p < 0.05" errs in any of the m with
+    probability at most 0.05, however the tests depend on one another."""
+    out, running = [0.0] * len(ps), 0.0
+    for rank, i in enumerate(sorted(range(len(ps)), key=lambda k: ps[k])):
+        running = max(running, min(1.0, (len(ps) - rank) * ps[i]))
+        out[i] = running
+    return out
+
+
+def adjusted(rows: Sequence[Row]) -> list[Row]:
+    """The rows with their p-values adjusted by `holm` for all of them: the family a report tests at once."""
+    return [replace(r, p_holm=p) for r, p in zip(rows, holm([r.comparison.p for r in rows]), strict=True)]
 
 
 def number(value: Any) -> float:
@@ -137,24 +155,25 @@ def _learns(phase: dict[str, Any]) -> str:
 
 def comparisons_table(rows: Sequence[Row]) -> str:
     """The comparisons as a Markdown table."""
-    lines = ["| environment | first | second | seeds | measure | first - second [95% CI] | p | first above |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| environment | first | second | seeds | measure | first - second [95% CI] | p | p, Holm | first above |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         c = r.comparison
         n, m = c.sizes
         seeds = f"{n}, paired" if r.paired else f"{n} and {m}"
         above = f"{c.above * n:g} of {n} seeds" if r.paired else f"{c.above:.2f} of seed pairs"
         lines.append(f"| {r.env} | {r.first} | {r.second} | {seeds} | {r.measure} | {r.fmt.format(c.difference)} "
-                     f"[{r.fmt.format(c.low)}, {r.fmt.format(c.high)}] | {c.p:.3g} | {above} |")
+                     f"[{r.fmt.format(c.low)}, {r.fmt.format(c.high)}] | {c.p:.3g} | {r.p_holm:.3g} | {above} |")
     return "\n".join(lines)
 
 
 COLUMNS = ("env", "first", "second", "measure", "paired", "first_seeds", "second_seeds", "difference", "low",
-           "high", "p", "first_above")
+           "high", "p", "p_holm", "first_above")
 """The columns of a report's `comparisons.csv`."""
 
 
 def csv_row(r: Row) -> list[Any]:
     """A comparison as a row of `COLUMNS`."""
     c = r.comparison
-    return [r.env, r.first, r.second, r.measure, r.paired, *c.sizes, c.difference, c.low, c.high, c.p, c.above]
+    return [r.env, r.first, r.second, r.measure, r.paired, *c.sizes, c.difference, c.low, c.high, c.p, r.p_holm,
+            c.above]

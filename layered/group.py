@@ -350,7 +350,7 @@ class Group:
         losses = {self.names[i]: PendingLosses() for i in learn}
         every = np.ones(self.rows, bool)
         label = f"phase {p}: {'+'.join(phase.learn)} ({count(self.rows, 'seed')})"
-        bar = Progress(label, budget, loop.step, self.progress)
+        bar = Progress(label, budget, loop.step, self.progress, self.rows)
 
         def act(i: int, seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
             full = all_rows(seen, deciding)

@@ -10,12 +10,12 @@ import time
 from tqdm import tqdm
 
 
-
 class Progress:
-    """Steps of one phase, and each evaluation's return."""
+    """Steps of one phase, and each evaluation's return. `seeds`: how many seeds take each step together
+    (a group's); its lines give the rate per seed and in all."""
 
-    def __init__(self, label: str, total: int, initial: int, enabled: bool) -> None:
-        self.label, self.total = label, total
+    def __init__(self, label: str, total: int, initial: int, enabled: bool, seeds: int = 1) -> None:
+        self.label, self.total, self.seeds = label, total, seeds
         self.lines = enabled and not sys.stderr.isatty()
         self.bar = tqdm(total=total, initial=initial, desc=label, unit="step", disable=not enabled or self.lines,
                         dynamic_ncols=True, mininterval=1.0)
@@ -37,7 +37,7 @@ class Progress:
         now, (then, before) = time.perf_counter(), self._since
         left = self.total - step if learned and self._learned else None
         print(f"{self.label}: step {step}/{self.total}, eval return {mean:.1f} ± {std:.1f}"
-              f"{pace(step - before, now - then, left)}{'' if learned or step == before else ', warm-up'}",
+              f"{pace(step - before, now - then, left, self.seeds)}{'' if learned or step == before else ', warm-up'}",
               file=sys.stderr, flush=True)
         self._since, self._learned = (now, step), learned
 
@@ -45,13 +45,15 @@ class Progress:
         self.bar.close()
 
 
-def pace(steps: int, seconds: float, left: int | None) -> str:
-    """", R steps/s" for `steps` taken in `seconds`, and ", about T left" for `left` more steps at that rate
-    (nothing for no steps: a phase's first line; no time left for `left` None or 0)."""
+def pace(steps: int, seconds: float, left: int | None, seeds: int = 1) -> str:
+    """", R steps/s" for `steps` taken in `seconds` (by each of `seeds` seeds: ", R steps/s per seed (R x seeds
+    in all)"), and ", about T left" for `left` more steps at that rate (nothing for no steps: a phase's first
+    line; no time left for `left` None or 0)."""
     if steps <= 0 or seconds <= 0:
         return ""
     rate = steps / seconds
-    return f", {rate:.0f} steps/s" + (f", about {duration(left / rate)} left" if left else "")
+    each = f"{rate:.0f} steps/s" + (f" per seed ({rate * seeds:.0f} in all)" if seeds > 1 else "")
+    return f", {each}" + (f", about {duration(left / rate)} left" if left else "")
 
 
 def duration(seconds: float) -> str:

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from layered.compare import COLUMNS, between_phases, between_setups, comparisons_table, csv_row, number
+from layered.compare import COLUMNS, adjusted, between_phases, between_setups, comparisons_table, csv_row, number
 
 
 def _activity(row: dict[str, Any], prefix: str, fmt: str = "{:.0%}") -> str:
@@ -331,14 +331,16 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
                   "weights of its best evaluation (the paper's protocol), both on `eval.fresh_episodes` episodes "
                   "of a seed never used for choosing; \"best as selected\" is that best evaluation's own return, "
                   "biased upwards by the choice.", "", wide_table(setups, FINAL_AND_BEST), ""]
-    compared = between_setups(setups) + between_phases(setups)
+    compared = adjusted(between_setups(setups) + between_phases(setups))
     if compared:
         parts += ["## Comparisons over seeds", "",
                   "Each finished setup against each one listed before it for the same environment and setting "
                   "(real-time or not), as independent samples of seeds (Welch's t-test), and each phase of a stack "
                   "trained in phases against the phase before it, seed by seed (a paired t-test): the difference of "
                   "the means with its 95% confidence interval, the two-sided p-value, and how often the first is above "
-                  "the second (over all pairs of a seed of each, or over the seeds; ties count half). With few seeds "
+                  "the second (over all pairs of a seed of each, or over the seeds; ties count half). \"p, Holm\" is "
+                  "the p-value adjusted for every comparison of this report (Holm's method): where it is below 0.05, "
+                  "the chance that any of them is below by chance alone is at most 5%. With few seeds "
                   "these tests have little power: a p-value above 0.05 says that the seeds do not tell the two apart, "
                   "not that the two are the same. The rows are in `comparisons.csv`.", "", comparisons_table(compared),
                   ""]

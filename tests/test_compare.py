@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from layered.compare import paired, welch
+from layered.compare import holm, paired, welch
 from layered.report import write_report
 from layered.summary import Run, group
 
@@ -68,6 +68,15 @@ def test_no_spread_and_too_few_seeds():
         paired([1.0, 2.0], [1.0, 2.0, 3.0])
 
 
+def test_holm_by_hand():
+    # m = 4; sorted 0.01, 0.03, 0.04, 0.2 times 4, 3, 2, 1: 0.04, 0.09, 0.08, 0.2; each at least the one
+    # before it (0.08 -> 0.09), given back in the order the p-values came
+    assert holm([0.01, 0.04, 0.03, 0.2]) == pytest.approx([0.04, 0.09, 0.09, 0.2])
+    assert holm([0.5, 0.6]) == [1.0, 1.0]  # 0.5 * 2 = 1.0, then at least that; never above 1
+    assert holm([0.02, 0.02]) == pytest.approx([0.04, 0.04])  # ties: 2 * 0.02, then 1 * 0.02 raised to it
+    assert holm([0.3]) == [0.3] and holm([]) == []
+
+
 def _run(label, seed, phases, finished=True, realtime=True):
     final = {k: v for k, v in phases[-1].items() if k != "learn"}
     return Run(Path(f"/r/{label}-{seed}"), "Hopper-v5", label, seed, realtime, final, ((0, 1.0),),
@@ -96,7 +105,11 @@ def test_the_report_compares_setups_and_each_phase_with_the_one_before(tmp_path)
     assert float(between["first_above"]) == 1.0 and between["measure"] == "return, best weights"
     # phase 1 against phase 0 seed by seed: 3 - 1, 5 - 2, 4 - 4, as in test_paired_by_hand
     assert float(phases["difference"]) == pytest.approx(5 / 3)
-    assert float(phases["p"]) == pytest.approx(p_two_sided_df2((5 / 3) / (math.sqrt(7 / 3) / math.sqrt(3))))
+    p_phases = p_two_sided_df2((5 / 3) / (math.sqrt(7 / 3) / math.sqrt(3)))  # 0.1994
+    assert float(phases["p"]) == pytest.approx(p_phases)
+    # two comparisons in the report: the smaller p (between, 0.0213) doubled, the larger kept (at least that)
+    assert float(between["p_holm"]) == pytest.approx(2 * float(between["p"]))
+    assert float(phases["p_holm"]) == pytest.approx(p_phases)
     assert "| Hopper-v5 | tla-realtime | td3-realtime | 3 and 3 | return, best weights | +3.0 [" in text
     assert "| 1.00 of seed pairs |" in text
     assert "| tla-realtime phase 1 (fast) | phase 0 (slow) | 3, paired | return, best weights | +1.7 [" in text
@@ -111,4 +124,4 @@ def test_unfinished_setups_and_other_settings_are_not_compared(tmp_path, other):
     text = write_report(group(runs), tmp_path)
     assert "## Comparisons over seeds" not in text
     assert (tmp_path / "comparisons.csv").read_text().splitlines() == [
-        "env,first,second,measure,paired,first_seeds,second_seeds,difference,low,high,p,first_above"]
+        "env,first,second,measure,paired,first_seeds,second_seeds,difference,low,high,p,p_holm,first_above"]
