@@ -54,10 +54,15 @@ def stacks_over(recipe: Recipe, active: Sequence[str], envs: Envs, evaluation: b
     return stack, rules, envs
 
 
+def open_run_envs(recipe: Recipe, episodes: int) -> Envs:
+    """A single run's evaluation environments for `episodes` episodes: the rows of a group of one seed, stepped in
+    this process (as the run's own environment is, so that environments a plugin registers step there too)."""
+    return open_envs(recipe.env.id, eval_lanes(episodes, 1), 0, recipe.env.threads, True)
+
+
 def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int) -> Stacks:
-    """A single run's evaluator of `episodes` episodes: the rows of a group of one seed, stepped in this process
-    (as the run's own environment is, so that environments a plugin registers step there too)."""
-    return open_stacks(recipe, active, eval_lanes(episodes, 1), evaluation=True, workers=0)
+    """A single run's evaluator of `episodes` episodes: its stack over `open_run_envs`."""
+    return stacks_over(recipe, active, open_run_envs(recipe, episodes), evaluation=True)
 
 
 def evaluate_stacks(evaluator: Stacks, learners: Mapping[str, Any], greedy: Callable[[Any, np.ndarray], np.ndarray],

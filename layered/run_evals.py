@@ -63,11 +63,11 @@ def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | No
     return and action frequency against the threshold (Fig. 2). Writes eval/threshold-sweep.csv; its rows."""
     from tqdm import tqdm
 
-    from layered.group_eval import evaluate_run, open_run_evaluator, stacks_over
+    from layered.group_eval import evaluate_run, open_run_envs, stacks_over
 
     episodes = episodes or run.recipe.eval.episodes
     rows = []
-    envs = open_run_evaluator(run.recipe, run.active, episodes)[2]
+    envs = open_run_envs(run.recipe, episodes)
     try:
         for threshold in tqdm(thresholds, desc="threshold sweep", unit="threshold"):
             at = stacks_over(run.recipe, run.active, envs, evaluation=True, threshold=threshold)
