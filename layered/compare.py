@@ -51,8 +51,15 @@ def welch(first: Sequence[float], second: Sequence[float]) -> Comparison | None:
         return None
     va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)  # each mean's variance
     df = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1)) if va + vb > 0 else math.inf
-    above = float(np.mean((a[:, None] > b[None]) + 0.5 * (a[:, None] == b[None])))
-    return _t_test(float(a.mean() - b.mean()), math.sqrt(va + vb), df, above, (len(a), len(b)))
+    return _t_test(float(a.mean() - b.mean()), math.sqrt(va + vb), df, float(improvement(a, b)),
+                   (len(a), len(b)))
+
+
+def improvement(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """The share of the pairs of a value of each (along their last axes) in which the first is above, ties half:
+    the probability of improvement of Agarwal et al. (2021); one per index of their leading axes."""
+    a, b = first[..., :, None], second[..., None, :]
+    return np.mean((a > b) + 0.5 * (a == b), axis=(-2, -1))
 
 
 def paired(first: Sequence[float], second: Sequence[float]) -> Comparison | None:
@@ -147,6 +154,72 @@ def between_phases(setups: Sequence[Any]) -> list[Row]:
                     rows.append(Row(s.env, f"{s.method} phase {p} ({_learns(phases[p])})",
                                     f"phase {p - 1} ({_learns(phases[p - 1])})", name, fmt, True, result))
     return rows
+
+
+@dataclass(frozen=True)
+class Across:
+    """A method against another over several environments."""
+
+    first: str
+    second: str
+    envs: tuple[str, ...]
+    measure: str
+    above: float  # the mean over the environments of the chance that a seed of the first is above one of the second
+    low: float  # its interval at LEVEL, from a stratified bootstrap
+    high: float
+
+
+RESAMPLES = 2000
+"""Bootstrap resamples of an `Across` interval."""
+
+
+def across_envs(setups: Sequence[Any], resamples: int = RESAMPLES) -> list[Across]:
+    """Each method (a recipe's name) against each listed before it, over every environment of one setting where
+    both have finished setups, where there are two or more such: the probability of improvement averaged over the
+    environments (Agarwal et al., 2021), which needs no common scale of returns, with its interval from a
+    stratified bootstrap (each environment's seeds of each method resampled, `resamples` times; seeded, so the same
+    report gives the same interval)."""
+    pairs: dict[tuple[bool, str, str], list[tuple[Any, Any]]] = {}
+    done = [s for s in setups if all(r.finished for r in s.runs)]
+    for i, later in enumerate(done):
+        for earlier in (s for s in done[:i] if (s.env, s.realtime) == (later.env, later.realtime)):
+            flipped = (later.realtime, earlier.method, later.method)
+            if flipped in pairs:  # listed the other way round in an earlier environment
+                pairs[flipped].append((earlier, later))
+            else:
+                pairs.setdefault((later.realtime, later.method, earlier.method), []).append((later, earlier))
+    rows = []
+    for (_, first, second), shared in ((k, v) for k, v in pairs.items() if len(v) > 1):
+        for key, name, _ in MEASURES:
+            values = [(_values(a.runs, key), _values(b.runs, key)) for a, b in shared]
+            if any(a is None or b is None for a, b in values):
+                continue
+            rng = np.random.default_rng(0)
+            point, boot = 0.0, np.zeros(resamples)
+            for a, b in ((np.asarray(a), np.asarray(b)) for a, b in values):
+                point += float(improvement(a, b)) / len(values)
+                boot += improvement(a[rng.integers(0, len(a), (resamples, len(a)))],
+                                    b[rng.integers(0, len(b), (resamples, len(b)))]) / len(values)
+            low, high = np.percentile(boot, [50 - LEVEL * 50, 50 + LEVEL * 50])
+            rows.append(Across(first, second, tuple(a.env for a, _ in shared), name, point, float(low), float(high)))
+    return rows
+
+
+def across_table(rows: Sequence[Across]) -> str:
+    """The comparisons over environments as a Markdown table."""
+    lines = ["| first | second | environments | measure | P(first above) [95% CI] |", "|---|---|---|---|---|"]
+    lines += [f"| {r.first} | {r.second} | {', '.join(r.envs)} | {r.measure} | "
+              f"{r.above:.2f} [{r.low:.2f}, {r.high:.2f}] |" for r in rows]
+    return "\n".join(lines)
+
+
+ACROSS_COLUMNS = ("first", "second", "envs", "measure", "first_above", "low", "high")
+"""The columns of a report's `across-envs.csv`; `envs` separated by spaces."""
+
+
+def across_csv_row(r: Across) -> list[Any]:
+    """A comparison over environments as a row of `ACROSS_COLUMNS`."""
+    return [r.first, r.second, " ".join(r.envs), r.measure, r.above, r.low, r.high]
 
 
 def _learns(phase: dict[str, Any]) -> str:

@@ -11,7 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from layered.compare import COLUMNS, adjusted, between_phases, between_setups, comparisons_table, csv_row, number
+from layered.compare import (ACROSS_COLUMNS, COLUMNS, RESAMPLES, across_csv_row, across_envs, across_table, adjusted,
+                             between_phases, between_setups, comparisons_table, csv_row, number)
 
 
 def _activity(row: dict[str, Any], prefix: str, fmt: str = "{:.0%}") -> str:
@@ -307,7 +308,7 @@ def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str
 
 def write_report(setups: Sequence[Any], out: Path) -> str:
     """Tables 1-3 as Markdown (report.md) and CSV (summary.csv), the setups and phases compared over seeds
-    (comparisons.csv), and learning curves (curves.png)."""
+    (comparisons.csv) and the methods over environments (across-envs.csv), and learning curves (curves.png)."""
     out.mkdir(parents=True, exist_ok=True)
     turn = [s for s in setups if not s.realtime]
     realtime = [s for s in setups if s.realtime]
@@ -344,6 +345,15 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
                   "these tests have little power: a p-value above 0.05 says that the seeds do not tell the two apart, "
                   "not that the two are the same. The rows are in `comparisons.csv`.", "", comparisons_table(compared),
                   ""]
+    across = across_envs(setups)
+    if across:
+        parts += ["## Across environments", "",
+                  "Each method against each one listed before it, over every environment (of one setting) where "
+                  "both finished: the probability that a seed of the first comes out above a seed of the second (ties "
+                  "half), averaged over the environments (Agarwal et al., 2021), which needs no common scale of "
+                  "returns; 0.5 where the two are alike. The 95% interval is from a stratified bootstrap: each "
+                  f"environment's seeds of each method resampled {RESAMPLES} times. The rows are in `across-envs.csv`.",
+                  "", across_table(across), ""]
     parts += ["## Per seed", "",
               "Each seed's last phase: its final evaluation's return, AUC, and its final and best weights on fresh "
               "episodes (with the best evaluation's step and the best weights' action repetition, AR); for a stack "
@@ -368,6 +378,10 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
         writer = csv.writer(f)
         writer.writerow(COLUMNS)
         writer.writerows(csv_row(r) for r in compared)
+    with (out / "across-envs.csv").open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(ACROSS_COLUMNS)
+        writer.writerows(across_csv_row(r) for r in across)
     plot_setup_curves(setups, out / "curves.png")
     return text
 

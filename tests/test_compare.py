@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from layered.compare import holm, paired, welch
+from layered.compare import across_envs, holm, paired, welch
 from layered.report import write_report
 from layered.summary import Run, group
 
@@ -125,3 +125,37 @@ def test_unfinished_setups_and_other_settings_are_not_compared(tmp_path, other):
     assert "## Comparisons over seeds" not in text
     assert (tmp_path / "comparisons.csv").read_text().splitlines() == [
         "env,first,second,measure,paired,first_seeds,second_seeds,difference,low,high,p,p_holm,first_above"]
+
+
+def _setups_over(envs):
+    """Finished single-phase setups of TD3 and TLA in each of `envs` ({env: (tla returns, td3 returns)})."""
+    runs = []
+    for env, (tla, td3) in envs.items():
+        for label, values in ((f"{env}/td3-realtime", td3), (f"{env}/tla-realtime", tla)):
+            runs += [Run(Path(f"/r/{env}-{label}-{k}"), env, label, k, True, {"return_mean": v}, ((0, 1.0),),
+                         phases=({"phase": 0, "return_mean": v},)) for k, v in enumerate(values)]
+    return group(runs)
+
+
+def test_a_method_against_another_across_environments_by_hand(tmp_path):
+    # Hopper: TLA 0, 2 against TD3 1, 1: (0 > 1) no, (2 > 1) yes, twice each: 0.5. Walker: 5, 5 against 1, 1: 1.
+    # Averaged: 0.75. The bootstrap keeps Walker at 1 and draws Hopper's TLA seeds as (0, 0), (2, 2) or one of
+    # each, with chances 1/4, 1/4, 1/2: Hopper 0, 1 or 0.5, so the mean 0.5, 1 or 0.75, each of the two tails
+    # holding a quarter of the resamples: the 2.5% and 97.5% points are 0.5 and 1.
+    setups = _setups_over({"Hopper-v5": ([0.0, 2.0], [1.0, 1.0]), "Walker2d-v5": ([5.0, 5.0], [1.0, 1.0])})
+    (row,) = across_envs(setups)
+    assert (row.first, row.second, row.envs) == ("tla-realtime", "td3-realtime", ("Hopper-v5", "Walker2d-v5"))
+    assert row.measure == "return, final evaluation"
+    assert (row.above, row.low, row.high) == (0.75, 0.5, 1.0)
+    text = write_report(setups, tmp_path)
+    assert ("| tla-realtime | td3-realtime | Hopper-v5, Walker2d-v5 | return, final evaluation | 0.75 [0.50, 1.00] |"
+            in text)
+    (written,) = csv.DictReader((tmp_path / "across-envs.csv").open())
+    assert written == {"first": "tla-realtime", "second": "td3-realtime", "envs": "Hopper-v5 Walker2d-v5",
+                       "measure": "return, final evaluation", "first_above": "0.75", "low": "0.5", "high": "1.0"}
+
+
+def test_one_environment_is_not_an_aggregate_and_seeds_alike_give_a_half(tmp_path):
+    assert across_envs(_setups_over({"Hopper-v5": ([0.0, 2.0], [1.0, 1.0])})) == []
+    (row,) = across_envs(_setups_over({"A-v0": ([3.0, 3.0], [3.0, 3.0]), "B-v0": ([1.0], [1.0])}))
+    assert (row.above, row.low, row.high) == (0.5, 0.5, 0.5)  # every pair a tie, in every resample
