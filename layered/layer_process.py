@@ -19,6 +19,8 @@ import queue
 import signal
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -255,6 +257,20 @@ class LayerEnd(Protocol):
     def close(self) -> None: ...
 
 
+@contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored within the block (in the main thread, where Python can set handlers), so that a process
+    started in it inherits that across its exec and never raises KeyboardInterrupt, even before `serve` runs."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
 class LayerProcess:
     """The driver's end of one layer's process: start it, send requests, take replies, stop it."""
 
@@ -265,7 +281,8 @@ class LayerProcess:
         self.connection, child = context.Pipe()
         self.process = context.Process(target=serve, args=(child, str(directory), backend, name, link, fault, seed),
                                        name=f"layered-{name}", daemon=True)
-        self.process.start()
+        with _sigint_ignored():  # from its first instruction: a Ctrl-C while it imports is the driver's too
+            self.process.start()
         child.close()  # the child holds the only other end: its death is an end of file here at once
         self.pid: int | None = self.process.pid
         self.waitable: Any = self.connection

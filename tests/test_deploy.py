@@ -301,6 +301,24 @@ def test_a_message_of_another_protocol_version_is_refused_both_ways(tmp_path, mo
 # --- the command ----------------------------------------------------------------------------------------
 
 
+def test_a_ctrl_c_while_a_layer_process_starts_is_left_to_the_driver(tmp_path):
+    """The signal reaches the process while its interpreter imports (before `serve` runs, a second or more): it
+    must neither die nor print a traceback, as Ctrl-C at a terminal reaches the whole process group."""
+    run = untrained("pendulum/tla-c.toml", [], tmp_path)
+    from layered.export import export_stack
+
+    directory = export_stack(run.recipe, run.learners, run.active, tmp_path / "export", "torchscript")
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as at a terminal, even in a background job
+    try:
+        process = LayerProcess("fast", directory, "torchscript")
+    finally:
+        signal.signal(signal.SIGINT, before)
+    os.kill(process.pid, signal.SIGINT)
+    process.wait_ready(60)  # it started all the same
+    assert process.process.is_alive()
+    process.close()
+
+
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """A briefly trained TLA-C run, shared by the command's tests (they only read it, or write under --out)."""
