@@ -430,12 +430,14 @@ def _deploy(args: argparse.Namespace) -> int:
                 else []) + [Settings(speed, False, links, faults, args.on_fault) for speed in speeds]
     out = args.out or args.run_dir / "deploy"
     torch.set_num_threads(1)
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(EXIT_SIGNAL["SIGTERM"]))  # so that every process is stopped
+    before = signal.signal(signal.SIGTERM, lambda *_: sys.exit(EXIT_SIGNAL["SIGTERM"]))  # every process is stopped
     try:
         rows = deploy(run, settings, args.episodes, out, args.threshold, transport=args.transport,
                       address=args.address)
     except RuntimeError as e:  # Ray is not installed
         return _fail(str(e))
+    finally:
+        signal.signal(signal.SIGTERM, before)  # (for a caller of `main` in its own process)
     print(table(rows))
     print(f"written to {out}: deploy.md{', deploy.png' if len(rows) > 1 else ''} and one JSON file per setting")
     stopped = args.on_fault == "stop" and any(row["faults"] for row in rows)

@@ -331,8 +331,10 @@ def trained(tmp_path_factory):
 
 def test_deploy_command_writes_what_it_prints_and_leaves_no_process(trained, tmp_path, capsys):
     out = trained
+    before = signal.getsignal(signal.SIGTERM)
     assert main(["deploy", str(out), "--lockstep", "--speed", "5", "--episodes", "1",
                  "--link-delay", "slow=1ms±0.5ms", "--out", str(tmp_path / "d")]) == 0
+    assert signal.getsignal(signal.SIGTERM) is before  # its handler, for the deployment only, is gone
     printed = capsys.readouterr().out
     rows = [json.loads((tmp_path / "d" / f"{label}.json").read_text()) for label in ("lockstep,slow=1ms±0.5ms",
                                                                                     "5x,slow=1ms±0.5ms")]
