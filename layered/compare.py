@@ -8,12 +8,14 @@ the means with its 95% confidence interval and a two-sided p-value, and how ofte
 the second: over every pair of a seed of each (the probability of improvement of Agarwal et al., 2021), or
 over the seeds; ties count half. Since a report makes many such tests at once, each p-value also comes adjusted
 for all of them by Holm's step-down method, which holds the chance of any false "p < 0.05" in the report to 5%.
+A method run in several environments is compared with another across them by its probability of improvement
+averaged over the environments, with a stratified-bootstrap interval.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -127,17 +129,22 @@ def _values(runs: Sequence[Any], key: str, phase: int | None = None) -> list[flo
     return None if any(v != v for v in found) else found
 
 
-def between_setups(setups: Sequence[Any]) -> list[Row]:
-    """Each finished setup against each listed before it in the same environment and setting (the real-time one
-    or not; the paper's baselines come first), on every measure of `MEASURES` that all their runs have."""
-    rows = []
+def setup_pairs(setups: Sequence[Any]) -> Iterator[tuple[Any, Any]]:
+    """Each finished setup with each listed before it in the same environment and setting (the real-time one or
+    not; the paper's baselines come first): what is compared with what, later first."""
     done = [s for s in setups if all(r.finished for r in s.runs)]
     for i, later in enumerate(done):
-        for earlier in (s for s in done[:i] if (s.env, s.realtime) == (later.env, later.realtime)):
-            for key, name, fmt in MEASURES:
-                a, b = _values(later.runs, key), _values(earlier.runs, key)
-                if a is not None and b is not None and (result := welch(a, b)) is not None:
-                    rows.append(Row(later.env, later.method, earlier.method, name, fmt, False, result))
+        yield from ((later, s) for s in done[:i] if (s.env, s.realtime) == (later.env, later.realtime))
+
+
+def between_setups(setups: Sequence[Any]) -> list[Row]:
+    """Each of `setup_pairs`, on every measure of `MEASURES` that all their runs have."""
+    rows = []
+    for later, earlier in setup_pairs(setups):
+        for key, name, fmt in MEASURES:
+            a, b = _values(later.runs, key), _values(earlier.runs, key)
+            if a is not None and b is not None and (result := welch(a, b)) is not None:
+                rows.append(Row(later.env, later.method, earlier.method, name, fmt, False, result))
     return rows
 
 
@@ -175,34 +182,37 @@ RESAMPLES = 2000
 
 def across_envs(setups: Sequence[Any], resamples: int = RESAMPLES) -> list[Across]:
     """Each method (a recipe's name) against each listed before it, over every environment of one setting where
-    both have finished setups, where there are two or more such: the probability of improvement averaged over the
-    environments (Agarwal et al., 2021), which needs no common scale of returns, with its interval from a
-    stratified bootstrap (each environment's seeds of each method resampled, `resamples` times; seeded, so the same
-    report gives the same interval)."""
+    both have finished setups, where there are two or more such: `mean_improvement` over those environments, on
+    every measure of `MEASURES` that all their runs have."""
     pairs: dict[tuple[bool, str, str], list[tuple[Any, Any]]] = {}
-    done = [s for s in setups if all(r.finished for r in s.runs)]
-    for i, later in enumerate(done):
-        for earlier in (s for s in done[:i] if (s.env, s.realtime) == (later.env, later.realtime)):
-            flipped = (later.realtime, earlier.method, later.method)
-            if flipped in pairs:  # listed the other way round in an earlier environment
-                pairs[flipped].append((earlier, later))
-            else:
-                pairs.setdefault((later.realtime, later.method, earlier.method), []).append((later, earlier))
+    for later, earlier in setup_pairs(setups):
+        flipped = (later.realtime, earlier.method, later.method)
+        if flipped in pairs:  # listed the other way round in an earlier environment
+            pairs[flipped].append((earlier, later))
+        else:
+            pairs.setdefault((later.realtime, later.method, earlier.method), []).append((later, earlier))
     rows = []
     for (_, first, second), shared in ((k, v) for k, v in pairs.items() if len(v) > 1):
         for key, name, _ in MEASURES:
             values = [(_values(a.runs, key), _values(b.runs, key)) for a, b in shared]
-            if any(a is None or b is None for a, b in values):
-                continue
-            rng = np.random.default_rng(0)
-            point, boot = 0.0, np.zeros(resamples)
-            for a, b in ((np.asarray(a), np.asarray(b)) for a, b in values):
-                point += float(improvement(a, b)) / len(values)
-                boot += improvement(a[rng.integers(0, len(a), (resamples, len(a)))],
-                                    b[rng.integers(0, len(b), (resamples, len(b)))]) / len(values)
-            low, high = np.percentile(boot, [50 - LEVEL * 50, 50 + LEVEL * 50])
-            rows.append(Across(first, second, tuple(a.env for a, _ in shared), name, point, float(low), float(high)))
+            if all(a is not None and b is not None for a, b in values):
+                interval = mean_improvement([(np.asarray(a), np.asarray(b)) for a, b in values], resamples)
+                rows.append(Across(first, second, tuple(a.env for a, _ in shared), name, *interval))
     return rows
+
+
+def mean_improvement(samples: Sequence[tuple[np.ndarray, np.ndarray]], resamples: int) -> tuple[float, float, float]:
+    """The probability of improvement of each environment's (first seeds, second seeds) averaged over them, and its
+    interval at LEVEL from a stratified bootstrap: each environment's seeds of each drawn again with replacement,
+    `resamples` times (seeded, so the same runs give the same interval)."""
+    rng = np.random.default_rng(0)
+    point, boot = 0.0, np.zeros(resamples)
+    for a, b in samples:
+        point += float(improvement(a, b)) / len(samples)
+        boot += improvement(a[rng.integers(0, len(a), (resamples, len(a)))],
+                            b[rng.integers(0, len(b), (resamples, len(b)))]) / len(samples)
+    low, high = np.percentile(boot, [50 - LEVEL * 50, 50 + LEVEL * 50])
+    return point, float(low), float(high)
 
 
 def across_table(rows: Sequence[Across]) -> str:
