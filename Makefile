@@ -11,8 +11,9 @@ OUT    ?= runs/$(basename $(notdir $(RECIPE)))-$(shell date +%Y%m%d-%H%M%S)
 run: $(VENV)/.installed
 	$(BIN)/layered train $(RECIPE) --out $(OUT)
 
+# The default suite, its tests shared out over one process per core (pytest-xdist).
 test: $(VENV)/.installed
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto
 
 # Pendulum TD3 and TLA-C at the recipes' budgets, 2 seeds, against the paper's numbers.
 learning-check: $(VENV)/.installed

@@ -66,39 +66,31 @@ def test_recipes_of_the_same_folder_and_name_get_run_directories_of_their_own(tm
     assert [job.label for job in jobs] == ["a/pendulum/td3", "b/pendulum/td3", "pendulum/tla-c"]
 
 
-def test_ray_backend_runs_the_same_jobs_and_gathers_the_same_run_directories(tmp_path):
-    pytest.importorskip("ray", reason="the ray backend is the optional extra layered[ray]")
-    args = (PENDULUM / "td3.toml", *TINY, "--seeds", 2, "--steps", 120)
-    local = sweep(*args, "--jobs", 2, "--out", tmp_path / "local")
-    assert local.returncode == 0, local.stderr
-    remote = sweep(*args, "--backend", "ray", "--out", tmp_path / "ray")
-    assert remote.returncode == 0, remote.stderr
-    for seed in (0, 1):
-        run = Path("pendulum/td3") / f"seed{seed}"
-        for name in ("metrics.csv", "episodes.csv", "recipe.toml"):
-            assert (tmp_path / "ray" / run / name).read_text() == (tmp_path / "local" / run / name).read_text()
-        assert (tmp_path / "ray" / run / "checkpoints" / "fast.pt").exists()
-
-
-def test_ray_backend_resumes_a_stopped_run_from_its_checkpoint(tmp_path, monkeypatch):
+def test_ray_backend_runs_the_same_jobs_resumes_a_stopped_one_and_gathers_the_same_run_directories(tmp_path,
+                                                                                                   monkeypatch):
+    """Seed 0 stopped at a checkpoint beforehand goes on from it as a Ray task, seed 1 trains from the start:
+    both end with the files of a local sweep."""
     pytest.importorskip("ray", reason="the ray backend is the optional extra layered[ray]")
     from conftest import train_until_stopped
 
     from layered import load_recipe
     from layered.sweep import plan
 
-    args = (PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 450)
-    assert sweep(*args, "--jobs", 1, "--out", tmp_path / "local").returncode == 0
-    [job] = plan([PENDULUM / "td3.toml"], 1, tmp_path / "ray", TINY, 450)
-    train_until_stopped(monkeypatch, load_recipe(job.recipe), job.out, 1, max_steps=450, progress=False,
-                        label=job.label)
+    args = (PENDULUM / "td3.toml", *TINY, "--seeds", 2, "--steps", 450)
+    local = sweep(*args, "--jobs", 2, "--out", tmp_path / "local")
+    assert local.returncode == 0, local.stderr
+    stopped = plan([PENDULUM / "td3.toml"], 2, tmp_path / "ray", TINY, 450)[0]
+    train_until_stopped(monkeypatch, load_recipe(stopped.recipe), stopped.out, 1, max_steps=450, progress=False,
+                        label=stopped.label)
     remote = sweep(*args, "--backend", "ray", "--out", tmp_path / "ray")
     assert remote.returncode == 0, remote.stderr
-    log = (job.out / "train.log").read_text()  # the Ray task's own progress lines, one per evaluation
+    log = (stopped.out / "train.log").read_text()  # the Ray task's own progress lines, one per evaluation
     assert "step 450/450" in log and "step 0/450" not in log  # it went on from the checkpoint
-    run = Path("pendulum/td3/seed0")
-    for name in ("metrics.csv", "episodes.csv", "results.json"):
-        assert (tmp_path / "ray" / run / name).read_text() == (tmp_path / "local" / run / name).read_text()
+    for seed in (0, 1):
+        run = Path("pendulum/td3") / f"seed{seed}"
+        for name in ("metrics.csv", "episodes.csv", "results.json", "recipe.toml"):
+            assert (tmp_path / "ray" / run / name).read_text() == (tmp_path / "local" / run / name).read_text()
+        assert (tmp_path / "ray" / run / "checkpoints" / "fast.pt").exists()
 
 
 WORKER_SCRIPT = """
