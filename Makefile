@@ -15,7 +15,7 @@ run: $(VENV)/.installed
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest -q -n auto
 
-# Pendulum TD3 and TLA-C at the recipes' budgets, 2 seeds, against the paper's numbers.
+# Pendulum TLA-C at the recipe's budget, 2 seeds, against the paper's numbers (TD3's beside it: pytest -m slow).
 learning-check: $(VENV)/.installed
 	$(BIN)/python -m pytest -q -m learning tests/test_learning.py
 

@@ -149,5 +149,6 @@ def test_env_family_same_seed_same_trajectory_and_exact_resume(family, tmp_path,
 
     assert rollout(3) == rollout(3) and rollout(3) != rollout(4)
     length = len(rollout(0, max_iter=10**6)) * 2 // 3  # the fast layer decides every step, the slow every other
-    recipe = load_recipe(stack_recipe([2, 1], env=env_id).model_dump(), [*SMALL, f"eval.every={length}"])
-    stopped_and_resumed_equals_whole(recipe, tmp_path, monkeypatch, steps=2 * length + 50, stop_after=1)
+    recipe = load_recipe(stack_recipe([2, 1], env=env_id).model_dump(),
+                         [*SMALL, f"eval.every={length}", "eval.fresh_episodes=1"])
+    stopped_and_resumed_equals_whole(recipe, tmp_path, monkeypatch, steps=length + 50, stop_after=1)

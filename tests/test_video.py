@@ -20,7 +20,9 @@ RECIPES = {  # recipe, episodes (dm_control renders in software here, 30 ms a fr
 }
 
 
-@pytest.mark.parametrize("family", list(RECIPES))
+# dm_control's video (a minute of software rendering on a CPU) on request; its frames render in test_envs
+@pytest.mark.parametrize("family", [pytest.param(f, marks=pytest.mark.slow) if f == "dm_control" else f
+                                    for f in RECIPES])
 def test_video_per_episode_with_the_layer_strip(family, tmp_path):
     path, episodes = RECIPES[family]
     if family != "classic control" and os.environ.get("MUJOCO_GL") == "disable":
