@@ -42,9 +42,9 @@ def check_run(out: Path, phases: int, layers: list[str]) -> dict:
 
 @pytest.mark.parametrize("path", RECIPES, ids=lambda p: str(p.relative_to(p.parents[1])))
 def test_every_shipped_recipe_trains_briefly(path, tmp_path):
-    # an evaluation at each phase's start and end, one fresh episode each: dm_control's episodes are 1000 steps
-    recipe = load_recipe(path, [*TINY, "eval.every=300", "eval.fresh_episodes=1"])
-    train(recipe, tmp_path, max_steps=300, progress=False)
+    steps = 300  # an evaluation at each phase's start and end, one fresh episode: dm_control's episodes are 1000 steps
+    recipe = load_recipe(path, [*TINY, f"eval.every={steps}", "eval.fresh_episodes=1"])
+    train(recipe, tmp_path, max_steps=steps, progress=False)
     check_run(tmp_path, len(phases_of(recipe)), recipe.layer_names())
 
 
