@@ -12,12 +12,14 @@ from __future__ import annotations
 import ctypes.util
 import os
 
+from layered.errors import BadInput
+
 OFF = "disable"  # what MuJoCo and dm_control read as "no rendering backend"
 HOW_TO_INSTALL = ("rendering a MuJoCo environment needs an OpenGL library and none was found: install EGL "
                   "(Debian/Ubuntu: apt install libegl1) or OSMesa (apt install libosmesa6), or set MUJOCO_GL")
 
 
-class RenderingUnavailable(RuntimeError):
+class RenderingUnavailable(BadInput, RuntimeError):
     """A MuJoCo environment was asked to render on a machine with no OpenGL backend."""
 
 

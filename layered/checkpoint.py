@@ -21,11 +21,13 @@ from typing import Any, BinaryIO
 
 import torch
 
+from layered.errors import BadInput
+
 FORMAT_VERSION = 3
 MAGIC = b"LAYERED-CHECKPOINT"
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(BadInput, RuntimeError):
     """A checkpoint that is missing, corrupted or of another format version."""
 
 

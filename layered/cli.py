@@ -13,20 +13,14 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-import torch
-
-from layered.checkpoint import CheckpointError
+# Only light modules here, so that --help and usage errors answer at once: each command imports
+# what it needs (torch, the learners, the environments) when it runs.
 from layered.deploy import FAULT_ACTIONS, Settings
-from layered.envs import RenderingUnavailable
-from layered.export import ExportError
+from layered.errors import BadInput, Diverged
 from layered.interrupt import Stopped
-from layered.layer_process import Fault, LayerFault, Link
-from layered.plugins import PluginError, load_plugins
-from layered.recipe import RecipeError, load_recipe, recipe_path
-from layered.report import plot_episode, results_table
-from layered.run_evals import DEFAULT_SWEEP
-from layered.rundir import RunDirError
-from layered.trainer import Diverged
+from layered.layer_process import Fault, Link
+from layered.plugins import load_plugins
+from layered.report import DEFAULT_SWEEP, plot_episode, results_table
 
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 1
@@ -231,6 +225,7 @@ def _fail(message: str) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
+    from layered.recipe import load_recipe, recipe_path
     from layered.rundir import check_new_run_dir, clear_run_dir
     from layered.runs import train
 
@@ -255,6 +250,7 @@ def _train(args: argparse.Namespace) -> int:
 def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[str]) -> int:
     from layered.group import check_group, group_recipes, train_group
     from layered.group_state import clear_group
+    from layered.recipe import recipe_path
     from layered.rundir import clear_run_dir
 
     if args.seed is not None:
@@ -381,9 +377,12 @@ def _print_sweep(rows: list[dict[str, Any]], run: Any) -> None:
 
 
 def _export(args: argparse.Namespace) -> int:
+    import torch
+
     from layered.export import export_stack
     from layered.latency import compare
     from layered.learner_set import load_learners
+    from layered.recipe import load_recipe
     from layered.rundir import run_plugins, warn_if_being_written
     from layered.trainer import phases_of
 
@@ -414,6 +413,8 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _deploy(args: argparse.Namespace) -> int:
+    import torch
+
     from layered.deploy_run import deploy, table
     from layered.run_evals import open_run
 
@@ -516,6 +517,7 @@ def _sweep(args: argparse.Namespace) -> int:
     jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins, args.group_size)
     if args.vectorize:
         from layered.group import check_group
+        from layered.recipe import load_recipe
 
         if args.backend == "ray":
             return _fail("--vectorize runs groups in local processes; it does not combine with --backend ray")
@@ -543,6 +545,10 @@ def _sweep(args: argparse.Namespace) -> int:
 
 COMMANDS = {"train": _train, "resume": _resume, "eval": _eval, "export": _export, "sweep": _sweep, "report": _report,
             "deploy": _deploy}
+# The modules each command runs on, with what they import (torch, the learners, the environments: seconds).
+LOADS = {"train": ("layered.runs", "layered.group"), "resume": ("layered.runs", "layered.group"),
+         "eval": ("layered.run_evals",), "export": ("layered.export",), "sweep": ("layered.sweep",),
+         "report": ("layered.summary",), "deploy": ("layered.deploy_run",)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -562,18 +568,26 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def load(args: argparse.Namespace) -> None:
+    """Import what the parsed command runs on, so that `layered.command` can do it while Ctrl-C is held."""
+    import importlib
+
+    for module in LOADS[args.command]:
+        importlib.import_module(module)
+
+
 def run(args: argparse.Namespace) -> int:
     """Carry out a parsed command line, as `main` says."""
     if getattr(args, "threads", None):
+        import torch
+
         torch.set_num_threads(args.threads)
     try:
         return COMMANDS[args.command](args)
-    except RecipeError as e:
-        for line in e.lines:
+    except BadInput as e:  # a recipe, run directory, checkpoint, plugin, export or layer process it cannot use
+        for line in str(e).splitlines():
             print(f"layered: error: {line}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (CheckpointError, PluginError, RunDirError, ExportError, RenderingUnavailable, LayerFault) as e:
-        return _fail(str(e))
     except Stopped as e:
         print(f"layered: {e}", file=sys.stderr)
         return EXIT_SIGNAL.get(e.signal_name, 1)

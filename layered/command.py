@@ -1,5 +1,6 @@
-"""The `layered` command: it loads the command line (torch and the environments take seconds) only once
-it runs, so that Ctrl-C while it starts stops with one line, as at any later moment."""
+"""The `layered` command: it loads the command line and then what the command runs on (torch and the
+environments take seconds) with Ctrl-C held, so that Ctrl-C while it starts stops with one line, as at
+any later moment; `--help` and usage errors answer before anything heavy is loaded."""
 
 from __future__ import annotations
 
@@ -35,9 +36,10 @@ def main() -> int:
     """Load and parse the command line, then run it; Ctrl-C until it runs is one line and exit code 130."""
     try:
         with sigint_held() as received:
-            from layered.cli import parse, run
+            from layered.cli import load, parse, run
 
             args = parse(sys.argv[1:])
+            load(args)
     except KeyboardInterrupt:
         received = [signal.SIGINT]
     if received:

@@ -24,6 +24,7 @@ import torch
 
 from layered import combiners, outputs, registry, rules, runtime
 from layered.agents import make_aec_env
+from layered.errors import BadInput
 from layered.learners import Learner
 from layered.schema import Recipe
 from layered.stack import Stack
@@ -36,7 +37,7 @@ RUNTIME_MODULES = {"__init__.py": runtime, "rules.py": rules, "combiners.py": co
                    "registry.py": registry}
 
 
-class ExportError(ValueError):
+class ExportError(BadInput, ValueError):
     """A stack that cannot be exported (a learner without an exportable policy, an unknown format)."""
 
 

@@ -33,6 +33,7 @@ from layered.checkpoint import save_checkpoint
 from layered.checkpoint_writer import CheckpointWriter, writes_beside
 from layered.env_group import Envs
 from layered.envs import make_env, snapshot_env
+from layered.errors import Diverged
 from layered.events import EventLog
 from layered.group_eval import Stacks, all_rows, eval_lanes, evaluate_stacks, open_stacks
 from layered.group_state import (
@@ -80,7 +81,6 @@ from layered.runstate import LoopState, recipe_digest
 from layered.stack import Stack
 from layered.trainer import (
     FRESH_MEASURES,
-    Diverged,
     PhaseResult,
     checkpoint_interval,
     curve_auc,

@@ -12,8 +12,10 @@ import sys
 from collections.abc import Iterable
 from pathlib import Path
 
+from layered.errors import BadInput
 
-class PluginError(ImportError):
+
+class PluginError(BadInput, ImportError):
     """A plugin that cannot be found or imported."""
 
 

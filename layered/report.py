@@ -14,6 +14,8 @@ import numpy as np
 from layered.compare import (ACROSS_COLUMNS, COLUMNS, RESAMPLES, across_csv_row, across_envs, across_table, adjusted,
                              between_phases, between_setups, comparisons_table, csv_row, number)
 
+DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]  # the thresholds of the paper's Fig. 2
+
 
 def _activity(row: dict[str, Any], prefix: str, fmt: str = "{:.0%}") -> str:
     return ", ".join(f"{k[len(prefix):]} {fmt.format(v)}" for k, v in row.items() if k.startswith(prefix))

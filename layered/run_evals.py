@@ -13,9 +13,9 @@ from layered.learners import Learner
 from layered.plugins import load_plugins
 from layered.recipe import Recipe, load_recipe
 from layered.combiners import COMBINERS
+from layered.report import DEFAULT_SWEEP
 
 SWEEP_FILE = "threshold-sweep.csv"
-DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from layered.checkpoint import previous, write_atomically
+from layered.errors import BadInput
 from layered.summary import PHASES_FILE
 
 LOCK_FILE = ".lock"
@@ -25,7 +26,7 @@ RUN_FILES = ("recipe.toml", "run.json", "metrics.csv", "episodes.csv", PHASES_FI
              "curves.png", "checkpoints", "eval", "train.log", LOCK_FILE)
 
 
-class RunDirError(ValueError):
+class RunDirError(BadInput, ValueError):
     """A run directory that cannot be used as asked (it holds another run, or no run)."""
 
 

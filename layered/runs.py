@@ -14,6 +14,7 @@ from typing import Any
 import tomli_w
 
 from layered.checkpoint import CheckpointError
+from layered.errors import Diverged
 from layered.events import EventLog
 from layered.events import available as events_available
 from layered.interrupt import StopRequest
@@ -35,7 +36,7 @@ from layered.rundir import (
 )
 from layered.replay_journal import ReplayJournal, replay_folder
 from layered.runstate import LoopState, load_state, recipe_differences, recipe_digest
-from layered.trainer import Diverged, Training, phase_budget, phases_of, train_phases
+from layered.trainer import Training, phase_budget, phases_of, train_phases
 
 
 CHANGEABLE = re.compile(r"layers\[\d+\]\.(learner\.(?!kind$)\w+|action_penalty|updates)$")

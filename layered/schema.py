@@ -10,11 +10,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 
 from layered.combiners import COMBINERS
 from layered.envs import env_info
+from layered.errors import BadInput
 from layered.learners import LEARNERS, Flag, LearnerConfig, Whole
 from layered.outputs import OutputLayout
 
 
-class RecipeError(ValueError):
+class RecipeError(BadInput, ValueError):
     """A recipe that cannot be used; each line names the source, the key and what was expected."""
 
     def __init__(self, source: str, problems: list[tuple[str, str]]) -> None:

@@ -20,6 +20,7 @@ from layered.checkpoint import save_checkpoint
 from layered.group_eval import Stacks, evaluate_run, open_run_evaluator
 from layered.interrupt import StopRequest, Stopped
 from layered.learners import Learner
+from layered.errors import Diverged
 from layered.events import EventLog
 from layered.logs import CsvLog
 from layered.metrics import Evaluation, normalised_auc
@@ -31,15 +32,6 @@ from layered.results import mean_losses, write_finished_phases
 from layered.runstate import LoopState, save_state
 
 FRESH_MEASURES = ("return_mean", "return_std", "repetition", "decisions", "jerk")
-
-
-class Diverged(RuntimeError):
-    """A non-finite loss, action or observation; the run's last checkpoint is left as it was. `layer`
-    names the layer that met it (None: the environment's observation)."""
-
-    def __init__(self, message: str, layer: str | None = None) -> None:
-        super().__init__(message)
-        self.layer = layer
 
 
 @dataclass(frozen=True)

@@ -144,15 +144,14 @@ def test_ctrl_c_that_a_library_swallows_while_the_command_starts_still_stops_it(
     import layered.cli
     from layered import command
 
-    def swallowing_parse(argv):
+    def swallowing_load(args):
         try:
             os.kill(os.getpid(), signal.SIGINT)  # handled at once, in this thread
         except BaseException:  # what a library's loading code may do
             pass
-        return argv
 
     ran, before = [], signal.getsignal(signal.SIGINT)
-    monkeypatch.setattr(layered.cli, "parse", swallowing_parse)
+    monkeypatch.setattr(layered.cli, "load", swallowing_load)
     monkeypatch.setattr(layered.cli, "run", ran.append)
     monkeypatch.setattr("sys.argv", ["layered", "train", str(TLA_C)])
     assert command.main() == 130 and not ran
@@ -173,3 +172,18 @@ def test_a_second_ctrl_c_while_the_command_starts_stops_at_once():
         assert received == [signal.SIGINT]
         os.kill(os.getpid(), signal.SIGINT)
         pytest.fail("the second SIGINT did not raise")
+
+
+def test_help_and_usage_errors_answer_without_loading_torch_and_a_command_loads_what_it_runs_on():
+    """`layered --help` and a usage error come from the command line alone (torch takes seconds to load);
+    `load` imports what the parsed command runs on."""
+    import subprocess
+    import sys
+
+    script = ("import sys; from layered.cli import load, parse\n"
+              "try:\n    parse(sys.argv[1:])\nexcept SystemExit as e:\n    print(e.code, 'torch' in sys.modules)\n"
+              "load(parse(['report', 'runs']))\nprint('report', 'torch' in sys.modules)\n"
+              "load(parse(['train', 'pendulum/td3']))\nprint('train', 'torch' in sys.modules)")
+    for argv, first in ((["--help"], "0 False"), (["train", "--seeds", "0-"], "2 False")):
+        out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, timeout=120)
+        assert out.stdout.strip().splitlines()[-3:] == [first, "report False", "train True"], out.stdout + out.stderr

@@ -195,7 +195,7 @@ def test_each_seed_reads_back_the_losses_of_the_updates_it_took_part_in():
     from layered.group import _read_back
     from layered.pending_losses import PendingLosses
     from layered.runstate import LoopState
-    from layered.trainer import Diverged
+    from layered.errors import Diverged
 
     def read(updates):
         pending, seeds = PendingLosses(), [SimpleNamespace(state=LoopState(losses={"fast": []})) for _ in range(3)]

@@ -27,7 +27,7 @@ from layered.runstate import load_state
 from layered.interrupt import Stopped
 from layered.rundir import RunDirError, read_run_info, writer
 from layered.runs import resume, train
-from layered.trainer import Diverged
+from layered.errors import Diverged
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
