@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import subprocess
 import time
 from collections import defaultdict, deque
@@ -61,6 +63,20 @@ def tiny() -> list[str]:
     """Overrides that make training a few hundred steps cheap."""
     return ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
             "eval.every=100", "eval.episodes=1", "eval.fresh_episodes=2"]
+
+
+def layered_here(*args: object) -> subprocess.CompletedProcess:
+    """`layered ARGS` run in this process, its exit code and what it printed as a child process gives them:
+    for a command that refuses its input, without a child's seconds of loading torch."""
+    from layered.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as e:  # a usage error, from argparse
+            code = int(e.code or 0)
+    return subprocess.CompletedProcess(["layered", *map(str, args)], code, out.getvalue(), err.getvalue())
 
 
 def assert_same_run(a: Path, b: Path) -> None:

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import layered_here
 
 DOCS = Path(__file__).parent.parent / "docs"
 EXAMPLES = DOCS / "examples"
@@ -37,14 +38,12 @@ def test_each_example_plugin_trains_from_its_recipe_and_is_needed(plugin, recipe
     assert proc.returncode == 0, proc.stderr
     assert json.loads((out / "run.json").read_text())["plugins"] == [str((EXAMPLES / plugin).resolve())]
     assert cli("eval", out, "--episodes", 1).returncode == 0  # the run remembers its plugin
-    without = cli("train", EXAMPLES / recipe, "--out", tmp_path / "other")
+    without = layered_here("train", EXAMPLES / recipe, "--out", tmp_path / "other")
     assert without.returncode == 2 and name in without.stderr
 
 
 def test_a_missing_plugin_is_a_clear_error(tmp_path):
-    command = [sys.executable, "-m", "layered.cli", "train", str(EXAMPLES / "pendulum-centre.toml"),
-               "--plugin", str(tmp_path / "nope.py")]
-    proc = subprocess.run(command, capture_output=True, text=True)
+    proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", tmp_path / "nope.py")
     assert proc.returncode == 2 and "no such file" in proc.stderr and "Traceback" not in proc.stderr
 
 

@@ -1,11 +1,10 @@
 """Recipes: validation names file and key, overrides reach every value, the resolved form reloads."""
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import tomli_w
+from conftest import layered_here
 
 from layered import RecipeError, load_recipe
 from layered.recipe import resolved
@@ -128,8 +127,7 @@ def test_resolved_recipe_reloads_to_the_same_recipe(tmp_path):
 def test_cli_bad_recipe_exits_2_without_touching_the_output(tmp_path):
     out = tmp_path / "run"
     for args in (["layers.fast.period=3"], ["nonsense"], ["--steps", "0"]):
-        proc = subprocess.run([sys.executable, "-m", "layered.cli", "train", str(TLA_C), *args, "--out", str(out)],
-                              capture_output=True, text=True)
+        proc = layered_here("train", TLA_C, *args, "--out", out)
         assert proc.returncode == 2, proc.stderr
         assert "Traceback" not in proc.stderr and proc.stderr.strip()
         assert not out.exists()

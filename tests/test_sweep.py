@@ -10,6 +10,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
+from conftest import layered_here
 
 from layered.cores import usable_cores
 from layered.env_workers import worker_count
@@ -37,19 +38,19 @@ def test_sweep_runs_each_pair_in_parallel_then_skips_finished_runs(tmp_path):
     seeds = {(out / r / "recipe.toml").read_text().count("seed = 1") for r in runs}
     assert seeds == {0, 1}
     before = (out / "pendulum/tla-o/seed1/metrics.csv").read_text()
-    again = sweep(*args)
+    again = layered_here("sweep", *args)  # (nothing to train: here, without a child's start)
     assert again.returncode == 0 and again.stdout.count("skipped") == 4
     assert (out / "pendulum/tla-o/seed1/metrics.csv").read_text() == before
 
 
 def test_sweep_refuses_bad_recipes_and_foreign_run_directories(tmp_path):
     out = tmp_path / "sw"
-    proc = sweep(PENDULUM / "td3.toml", "train.warmup=-1", "--out", out)
+    proc = layered_here("sweep", PENDULUM / "td3.toml", "train.warmup=-1", "--out", out)
     assert proc.returncode == 2 and "train.warmup" in proc.stderr and not out.exists()
     assert sweep(PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 100, "--out", out).returncode == 0
-    proc = sweep(PENDULUM / "td3.toml", *TINY, "learner.lr=1e-3", "--seeds", 1, "--out", out)
+    proc = layered_here("sweep", PENDULUM / "td3.toml", *TINY, "learner.lr=1e-3", "--seeds", 1, "--out", out)
     assert proc.returncode == 2 and "holds a different recipe" in proc.stderr
-    proc = sweep(PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 200, "--out", out)  # not silently reused
+    proc = layered_here("sweep", PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 200, "--out", out)  # not reused
     assert proc.returncode == 2 and "this run was made with --steps 100, not --steps 200" in proc.stderr
 
 
@@ -206,8 +207,8 @@ def test_a_signal_to_the_sweep_alone_starts_no_new_run_and_stops_the_running_one
     assert len(lines) == 2 and "no new run starts" in lines[0] and how in lines[1], stderr
     assert stderr.count("no new run starts") == 1 and stdout.count("not started") == 2
     assert not list(out.rglob("results.json")) and len(list(out.glob("*/*/seed*"))) == 2
-    again = sweep(PENDULUM / "td3.toml", PENDULUM / "tla-o.toml", *TINY, "eval.fresh_episodes=0", "--seeds", 2,
-                  "--jobs", 2, "--steps", 300, "--out", out)
+    again = layered_here("sweep", PENDULUM / "td3.toml", PENDULUM / "tla-o.toml", *TINY, "eval.fresh_episodes=0",
+                         "--seeds", 2, "--jobs", 2, "--steps", 300, "--out", out)
     assert again.returncode == 2 and "--steps 3000, not --steps 300" in again.stderr  # resumed only as it was made
 
 
@@ -243,16 +244,16 @@ def test_a_vectorised_sweep_trains_each_setups_seeds_as_one_group(tmp_path):
     runs = sorted(p.parent.relative_to(out).as_posix() for p in out.rglob("results.json"))
     assert runs == [f"pendulum/td3/layers.fast.action_penalty={v}/seed{k}" for v in (0, 1) for k in (0, 1)]
     assert '"group": [\n    0,\n    1\n  ]' in (out / runs[0] / "run.json").read_text()
-    assert sweep(*args).stdout.count("skipped") == 4
+    assert layered_here("sweep", *args).stdout.count("skipped") == 4
     cut = sweep(PENDULUM / "td3.toml", *TINY, "--seeds", 3, "--jobs", 2, "--steps", 150, "--vectorize",
                 "--group-size", 2, "--out", tmp_path / "cut")
     assert cut.returncode == 0, cut.stderr
     runs = sorted(p.parent.relative_to(tmp_path / "cut").as_posix() for p in (tmp_path / "cut").rglob("results.json"))
     assert runs == ["pendulum/td3/seeds0-1/seed0", "pendulum/td3/seeds0-1/seed1", "pendulum/td3/seeds2-2/seed2"]
     assert '"group": [\n    2\n  ]' in (tmp_path / "cut" / runs[2] / "run.json").read_text()
-    alone = sweep(PENDULUM / "td3.toml", "--group-size", 2, "--out", tmp_path / "u")
+    alone = layered_here("sweep", PENDULUM / "td3.toml", "--group-size", 2, "--out", tmp_path / "u")
     assert alone.returncode == 2 and "needs --vectorize" in alone.stderr and not (tmp_path / "u").exists()
     examples = PENDULUM.parent.parent / "docs" / "examples"  # a plugin's learner, which no group stacks
-    refused = sweep(examples / "pendulum-centre.toml", "--plugin", examples / "centre.py", "--vectorize", "--out",
-                    tmp_path / "t")
+    refused = layered_here("sweep", examples / "pendulum-centre.toml", "--plugin", examples / "centre.py",
+                           "--vectorize", "--out", tmp_path / "t")
     assert refused.returncode == 2 and "'centre' learner" in refused.stderr and not (tmp_path / "t").exists()

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import stack_recipe
+from conftest import layered_here, stack_recipe
 
 from layered import load_recipe
 from layered.interrupt import StopRequest
@@ -107,13 +107,13 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     assert (out / "eval" / "threshold-sweep.csv").read_text().count("\n") == 3  # header and two thresholds
     assert (out / "eval" / "threshold-sweep.png").stat().st_size > 0
     assert (out / "eval" / "gallery-fast.png").stat().st_size > 0
-    assert layered_cli("eval", out, "--gallery", "medium").returncode == 2
+    assert layered_here("eval", out, "--gallery", "medium").returncode == 2
 
     before = sorted(p.name for p in out.iterdir())
-    assert layered_cli("train", recipe, "--out", out).returncode == 2  # never overwrites a run
+    assert layered_here("train", recipe, "--out", out).returncode == 2  # never overwrites a run
     assert sorted(p.name for p in out.iterdir()) == before
     (out / "checkpoints" / "fast.best.pt").write_bytes(b"\0" * 10)  # the recipe hands on its best weights
-    proc = layered_cli("eval", out)
+    proc = layered_here("eval", out)
     assert proc.returncode == 2 and "not a checkpoint" in proc.stderr and "Traceback" not in proc.stderr
 
 
