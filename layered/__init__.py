@@ -11,14 +11,17 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from layered.agents import LayeredEnv, make_aec_env
+    from layered.errors import BadInput, Diverged
     from layered.plugins import load_plugin
     from layered.recipe import Recipe, RecipeError, load_recipe
     from layered.runs import resume, train
 
-_HOMES = {"LayeredEnv": "layered.agents", "make_aec_env": "layered.agents", "load_plugin": "layered.plugins",
+_HOMES = {"LayeredEnv": "layered.agents", "make_aec_env": "layered.agents", "BadInput": "layered.errors",
+          "Diverged": "layered.errors", "load_plugin": "layered.plugins",
           "Recipe": "layered.recipe", "RecipeError": "layered.recipe", "load_recipe": "layered.recipe",
           "resume": "layered.runs", "train": "layered.runs"}
-__all__ = ["LayeredEnv", "Recipe", "RecipeError", "load_plugin", "load_recipe", "make_aec_env", "resume", "train"]
+__all__ = ["BadInput", "Diverged", "LayeredEnv", "Recipe", "RecipeError", "load_plugin", "load_recipe", "make_aec_env",
+           "resume", "train"]
 __version__ = "0.1.0"
 
 

@@ -187,3 +187,19 @@ def test_help_and_usage_errors_answer_without_loading_torch_and_a_command_loads_
     for argv, first in ((["--help"], "0 False"), (["train", "--seeds", "0-"], "2 False")):
         out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, timeout=120)
         assert out.stdout.strip().splitlines()[-3:] == [first, "report False", "train True"], out.stdout + out.stderr
+
+
+def test_the_package_names_load_when_first_used_and_are_what_their_modules_define():
+    """`import layered` loads neither torch nor an environment; each public name resolves to its home's."""
+    import importlib
+    import subprocess
+    import sys
+
+    import layered
+
+    script = "import sys, layered; print('torch' in sys.modules, 'gymnasium' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert out.stdout.split() == ["False", "False"], out.stderr
+    for name in layered.__all__:
+        assert getattr(layered, name) is getattr(importlib.import_module(layered._HOMES[name]), name)
+    assert issubclass(layered.RecipeError, layered.BadInput)
