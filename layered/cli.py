@@ -15,6 +15,7 @@ from typing import Any, NoReturn
 
 # Only light modules here, so that --help and usage errors answer at once: each command imports
 # what it needs (torch, the learners, the environments) when it runs.
+from layered import __version__
 from layered.deploy import FAULT_ACTIONS, Settings
 from layered.errors import BadInput, Diverged
 from layered.interrupt import Stopped
@@ -78,8 +79,10 @@ def _seeds(text: str) -> list[int]:
         elif "-" in text.strip("-"):
             first, last = (int(part) for part in text.split("-", 1))
             seeds = list(range(first, min(last, first + MAX_GROUP) + 1))
-        else:
+        elif text.strip().isdigit():
             seeds = list(range(min(_positive(text), MAX_GROUP + 1)))
+        else:
+            raise ValueError
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected N, A-B or A,B,C, got {text!r}") from None
     if not seeds or min(seeds) < 0 or max(seeds) > 2**32 - 1 or len(set(seeds)) != len(seeds):
@@ -91,6 +94,7 @@ def _seeds(text: str) -> list[int]:
 
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="layered", description="Temporally layered control stacks.")
+    parser.add_argument("--version", action="version", version=f"layered {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     tr = sub.add_parser(
         "train", help="train a recipe and write a run directory",

@@ -174,19 +174,25 @@ def test_a_second_ctrl_c_while_the_command_starts_stops_at_once():
         pytest.fail("the second SIGINT did not raise")
 
 
-def test_help_and_usage_errors_answer_without_loading_torch_and_a_command_loads_what_it_runs_on():
-    """`layered --help` and a usage error come from the command line alone (torch takes seconds to load);
-    `load` imports what the parsed command runs on."""
+def test_help_version_and_usage_errors_answer_without_loading_torch_and_a_command_loads_what_it_runs_on():
+    """`layered --help`, `--version` and a usage error come from the command line alone (torch takes seconds
+    to load); `load` imports what the parsed command runs on."""
     import subprocess
     import sys
+
+    from layered import __version__
 
     script = ("import sys; from layered.cli import load, parse\n"
               "try:\n    parse(sys.argv[1:])\nexcept SystemExit as e:\n    print(e.code, 'torch' in sys.modules)\n"
               "load(parse(['report', 'runs']))\nprint('report', 'torch' in sys.modules)\n"
               "load(parse(['train', 'pendulum/td3']))\nprint('train', 'torch' in sys.modules)")
-    for argv, first in ((["--help"], "0 False"), (["train", "--seeds", "0-"], "2 False")):
+    for argv, said in ((["--help"], "usage: layered"), (["--version"], f"layered {__version__}\n"),
+                       (["train", "--seeds", "0-"], "")):
         out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, timeout=120)
-        assert out.stdout.strip().splitlines()[-3:] == [first, "report False", "train True"], out.stdout + out.stderr
+        code = "2" if said == "" else "0"
+        assert out.stdout.strip().splitlines()[-3:] == [f"{code} False", "report False", "train True"], out.stderr
+        refused = "--seeds: expected N, A-B or A,B,C, got '0-'" in out.stderr  # (not "a whole number")
+        assert out.stdout.startswith(said) and refused == (said == ""), out.stderr
 
 
 def test_the_package_names_load_when_first_used_and_are_what_their_modules_define():
