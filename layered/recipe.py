@@ -3,6 +3,7 @@ overrides, validated by the schema and the checks across fields, periods given i
 
 from __future__ import annotations
 
+import difflib
 import tomllib
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -101,15 +102,16 @@ def read_recipe_file(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise RecipeError(str(path), [("", "no such recipe file")]) from None
+        raise RecipeError(str(path), [(None, f"no such recipe file{_shipped_like(path)}")]) from None
     except IsADirectoryError:
-        raise RecipeError(str(path), [("", "is a directory, not a recipe file")]) from None
+        raise RecipeError(str(path), [(None, "is a directory, not a recipe file")]) from None
     except UnicodeDecodeError as e:
-        raise RecipeError(str(path), [("", f"not UTF-8 text (byte {e.start}); a recipe is a TOML text file")]) from None
+        message = f"not UTF-8 text (byte {e.start}); a recipe is a TOML text file"
+        raise RecipeError(str(path), [(None, message)]) from None
     except OSError as e:
-        raise RecipeError(str(path), [("", f"cannot be read: {e.strerror or e}")]) from None
+        raise RecipeError(str(path), [(None, f"cannot be read: {e.strerror or e}")]) from None
     except tomllib.TOMLDecodeError as e:
-        raise RecipeError(str(path), [("", f"not valid TOML: {e}")]) from None
+        raise RecipeError(str(path), [(None, f"not valid TOML: {e}")]) from None
     _absolute_weights(data, path.parent)
     base = data.pop("extends", None)
     if base is None:
@@ -120,6 +122,16 @@ def read_recipe_file(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]
     if base_path in _seen:
         raise RecipeError(str(path), [("extends", f"{base} extends itself through {', '.join(map(str, _seen))}")])
     return _merge(read_recipe_file(base_path, (*_seen, path.resolve())), data)
+
+
+def _shipped_like(path: Path) -> str:
+    """The shipped recipes whose names are closest to a missing `path` given by name, as the end of its message."""
+    if path.is_absolute():
+        return ""
+    root = shipped_recipes()
+    names = sorted(p.relative_to(root).with_suffix("").as_posix() for p in root.rglob("*.toml"))
+    close = difflib.get_close_matches(path.with_suffix("").as_posix(), names, n=3, cutoff=0.6)
+    return f"; shipped recipes with a name like it: {', '.join(close)}" if close else ""
 
 
 def _absolute_weights(data: dict[str, Any], base: Path) -> None:

@@ -16,10 +16,12 @@ from layered.outputs import OutputLayout
 
 
 class RecipeError(BadInput, ValueError):
-    """A recipe that cannot be used; each line names the source, the key and what was expected."""
+    """A recipe that cannot be used; each line names the source, the key (None: the file as a whole) and
+    what was expected."""
 
-    def __init__(self, source: str, problems: list[tuple[str, str]]) -> None:
-        self.lines = [f"{source}: {key or '(top level)'}: {message}" for key, message in problems]
+    def __init__(self, source: str, problems: Iterable[tuple[str | None, str]]) -> None:
+        self.lines = [f"{source}: {message}" if key is None else f"{source}: {key or '(top level)'}: {message}"
+                      for key, message in problems]
         super().__init__("\n".join(self.lines))
 
 

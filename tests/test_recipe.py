@@ -95,7 +95,10 @@ def test_file_errors_name_the_file(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[env]\nid = 'Pendulum-v1'\n[[layers]]\nname = 'a'\nperiod = 1\nwat = 2\n")
     assert errors(bad) == [f"{bad}: layers[0].wat: unknown key"]
-    assert errors(tmp_path / "none.toml") == [f"{tmp_path / 'none.toml'}: (top level): no such recipe file"]
+    assert errors(tmp_path / "none.toml") == [f"{tmp_path / 'none.toml'}: no such recipe file"]
+    assert errors("pendulm/tla-c") == ["pendulm/tla-c: no such recipe file; shipped recipes with a name like it: "
+                                       "pendulum/tla-c, pendulum/tla-o, pendulum/tla-joint"]  # a shipped name mistyped
+    assert errors("nothing/like-it") == ["nothing/like-it: no such recipe file"]
     (tmp_path / "broken.toml").write_text("[env\n")
     assert "not valid TOML" in errors(tmp_path / "broken.toml")[0]
 
@@ -167,4 +170,4 @@ def test_extends_errors(tmp_path):
     (tmp_path / "b.toml").write_text('extends = "a.toml"\n')
     assert "extends itself" in errors(tmp_path / "a.toml")[0]
     (tmp_path / "c.toml").write_text('extends = "missing.toml"\n')
-    assert "missing.toml: (top level): no such recipe file" in errors(tmp_path / "c.toml")[0]
+    assert "missing.toml: no such recipe file" in errors(tmp_path / "c.toml")[0]
