@@ -19,7 +19,7 @@ from layered import __version__
 from layered.deploy import FAULT_ACTIONS, Settings
 from layered.errors import BadInput, Diverged
 from layered.interrupt import Stopped
-from layered.layer_process import Fault, Link
+from layered.layer_process import Fault, LayerFault, Link
 from layered.plugins import load_plugins
 from layered.report import DEFAULT_SWEEP, plot_episode, results_table
 
@@ -588,7 +588,7 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     try:
         return COMMANDS[args.command](args)
-    except BadInput as e:  # a recipe, run directory, checkpoint, plugin, export or layer process it cannot use
+    except (BadInput, LayerFault) as e:  # an input it cannot use; a layer's process that died or stalled
         for line in str(e).splitlines():
             print(f"layered: error: {line}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 
 class BadInput(Exception):
-    """An input a command cannot use: a recipe, a run directory, a checkpoint, a plugin, an export, a
-    layer's process. The command prints each line of the message as one line and exits with 2."""
+    """An input a command cannot use: a recipe, a run directory, a checkpoint, a plugin, a stack to export,
+    a rendering this machine cannot do. The command prints each line of the message as one line and exits
+    with 2."""
 
 
 class Diverged(RuntimeError):

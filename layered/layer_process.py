@@ -28,14 +28,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from layered.errors import BadInput
-
 PROTOCOL = 1  # of the messages below; a process refuses a request of another version, the driver a reply
 WARMUP_CALLS = 20  # untimed calls before the process says it is ready: TorchScript optimises over its first calls
 UNITS = {"us": 1e-6, "µs": 1e-6, "ms": 1e-3, "s": 1.0}
 
 
-class LayerFault(BadInput, RuntimeError):
+class LayerFault(RuntimeError):
     """A layer's process died, stalled or broke the protocol."""
 
 
