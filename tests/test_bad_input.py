@@ -176,23 +176,35 @@ def test_a_second_ctrl_c_while_the_command_starts_stops_at_once():
 
 def test_help_version_and_usage_errors_answer_without_loading_torch_and_a_command_loads_what_it_runs_on():
     """`layered --help`, `--version` and a usage error come from the command line alone (torch takes seconds
-    to load); `load` imports what the parsed command runs on."""
+    to load); `load` imports what the parsed command runs on. One fresh interpreter runs them in turn."""
+    import json
     import subprocess
     import sys
 
     from layered import __version__
 
-    script = ("import sys; from layered.cli import load, parse\n"
-              "try:\n    parse(sys.argv[1:])\nexcept SystemExit as e:\n    print(e.code, 'torch' in sys.modules)\n"
-              "load(parse(['report', 'runs']))\nprint('report', 'torch' in sys.modules)\n"
-              "load(parse(['train', 'pendulum/td3']))\nprint('train', 'torch' in sys.modules)")
-    for argv, said in ((["--help"], "usage: layered"), (["--version"], f"layered {__version__}\n"),
-                       (["train", "--seeds", "0-"], "")):
-        out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True, timeout=120)
-        code = "2" if said == "" else "0"
-        assert out.stdout.strip().splitlines()[-3:] == [f"{code} False", "report False", "train True"], out.stderr
-        refused = "--seeds: expected N, A-B or A,B,C, got '0-'" in out.stderr  # (not "a whole number")
-        assert out.stdout.startswith(said) and refused == (said == ""), out.stderr
+    script = """import contextlib, io, json, sys
+from layered.cli import load, parse
+said = []
+for argv in (["--help"], ["--version"], ["train", "--seeds", "0-"]):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            parse(argv)
+        except SystemExit as e:
+            said.append([e.code, out.getvalue(), err.getvalue(), "torch" in sys.modules])
+load(parse(["report", "runs"]))
+said.append("torch" in sys.modules)
+load(parse(["train", "pendulum/td3"]))
+said.append("torch" in sys.modules)
+print(json.dumps(said))"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    helped, version, refused, after_report, after_train = json.loads(out.stdout)
+    assert helped[0] == 0 and helped[1].startswith("usage: layered") and not helped[3]
+    assert version == [0, f"layered {__version__}\n", "", False]
+    assert refused[0] == 2 and not refused[3]
+    assert "--seeds: expected N, A-B or A,B,C, got '0-'" in refused[2]  # (not "a whole number")
+    assert (after_report, after_train) == (False, True)
 
 
 def test_the_package_names_load_when_first_used_and_are_what_their_modules_define():
