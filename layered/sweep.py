@@ -104,9 +104,9 @@ def _check_same_run(job: Job) -> None:
     skipping it as finished) would mix two experiments."""
     existing = job.out / "recipe.toml"
     if existing.exists() and tomllib.loads(existing.read_text()) != tomllib.loads(tomli_w.dumps(job.recipe)):
-        raise RecipeError(str(existing), [("", "this run directory holds a different recipe; use another --out")])
+        raise RecipeError(str(existing), [(None, "this run directory holds a different recipe; use another --out")])
     if (job.out / "run.json").exists() and (made := read_run_info(job.out).max_steps) != job.max_steps:
-        raise RecipeError(str(job.out / "run.json"), [("", f"this run was made with {steps_option(made)}, not "
+        raise RecipeError(str(job.out / "run.json"), [(None, f"this run was made with {steps_option(made)}, not "
                                                        f"{steps_option(job.max_steps)}; use another --out, or the "
                                                        "same --steps")])
 
