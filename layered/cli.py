@@ -590,7 +590,7 @@ def run(args: argparse.Namespace) -> int:
         return COMMANDS[args.command](args)
     except (BadInput, LayerFault) as e:  # an input it cannot use; a layer's process that died or stalled
         for line in str(e).splitlines():
-            print(f"layered: error: {line}", file=sys.stderr)
+            _fail(line)
         return EXIT_BAD_INPUT
     except Stopped as e:
         print(f"layered: {e}", file=sys.stderr)
