@@ -31,8 +31,13 @@ def recipe_path(source: str | Path) -> Path:
     path = Path(source)
     if path.exists() or path.is_absolute():
         return path
-    shipped = shipped_recipes() / path.with_suffix(".toml")
+    shipped = shipped_recipes() / _as_toml(path)
     return shipped if shipped.is_file() else path
+
+
+def _as_toml(path: Path) -> Path:
+    """`path` with `.toml` added where it is not its suffix already (`hopper/td3.v2` is hopper/td3.v2.toml)."""
+    return path if path.suffix == ".toml" else path.with_name(path.name + ".toml")
 
 
 def load_recipe(source: str | Path | Mapping[str, Any], overrides: Iterable[str] = ()) -> Recipe:
@@ -130,7 +135,7 @@ def _shipped_like(path: Path) -> str:
         return ""
     root = shipped_recipes()
     names = sorted(p.relative_to(root).with_suffix("").as_posix() for p in root.rglob("*.toml"))
-    close = difflib.get_close_matches(path.with_suffix("").as_posix(), names, n=3, cutoff=0.6)
+    close = difflib.get_close_matches(_as_toml(path).with_suffix("").as_posix(), names, n=3, cutoff=0.6)
     return f"; shipped recipes with a name like it: {', '.join(close)}" if close else ""
 
 

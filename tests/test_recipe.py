@@ -99,6 +99,8 @@ def test_file_errors_name_the_file(tmp_path):
     assert errors("pendulm/tla-c") == ["pendulm/tla-c: no such recipe file; shipped recipes with a name like it: "
                                        "pendulum/tla-c, pendulum/tla-o, pendulum/tla-joint"]  # a shipped name mistyped
     assert errors("nothing/like-it") == ["nothing/like-it: no such recipe file"]
+    assert errors("pendulum/tla-c.tom")[0].startswith("pendulum/tla-c.tom: no such recipe file; ")  # not tla-c.toml
+    assert load_recipe("pendulum/tla-c").layers == load_recipe("pendulum/tla-c.toml").layers
     (tmp_path / "broken.toml").write_text("[env\n")
     assert "not valid TOML" in errors(tmp_path / "broken.toml")[0]
 
