@@ -158,7 +158,7 @@ def _parser() -> argparse.ArgumentParser:
     _plugin_option(ex, "besides those the run was trained with")
     sw = sub.add_parser(
         "sweep", help="train every recipe with several seeds, in parallel processes",
-        usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--out DIR] [--steps N] "
+        usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--threads T] [--out DIR] [--steps N] "
         "[--vectorize [--group-size N]] [--device {cpu,cuda,auto}] [--no-mps] [--backend {local,ray}] [--address ADDR] "
         "[--plugin FILE.py|MODULE]",
         epilog="key=a,b,c trains a setup per value (several such keys: every combination), each in its own "
@@ -167,6 +167,8 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("recipes", nargs="+", metavar="RECIPE", help="recipe files (and key=value overrides)")
     sw.add_argument("--seeds", type=_positive, default=3, help="seeds 0..N-1 (default 3)")
     sw.add_argument("--jobs", type=_positive, default=os.cpu_count() or 1, help="parallel processes (default: cores)")
+    sw.add_argument("--threads", type=_positive, help="torch threads in each process (default: the cores over the "
+                    "processes that run at once; set it where other work shares the machine)")
     sw.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep directory (default runs/sweep)")
     sw.add_argument("--steps", type=_positive, help="cap every training phase at N environment steps")
     sw.add_argument("--vectorize", action="store_true",
@@ -518,6 +520,8 @@ def _sweep(args: argparse.Namespace) -> int:
     plugins = load_plugins(args.plugin)
     if args.group_size is not None and not args.vectorize:
         return _fail("--group-size cuts a setup's seeds into groups: it needs --vectorize")
+    if args.threads is not None and args.backend == "ray":
+        return _fail("--threads sets the threads of local processes; a Ray task computes on one thread")
     jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins, args.group_size)
     if args.vectorize:
         from layered.group import check_group
@@ -537,7 +541,7 @@ def _sweep(args: argparse.Namespace) -> int:
         with shared_gpu(processes if on_gpu(jobs) and not args.no_mps else 1) as line:
             if line is not None:
                 print(f"layered: note: {line}", file=sys.stderr)
-            outcomes, stop = run_local(jobs, args.jobs, args.vectorize)
+            outcomes, stop = run_local(jobs, args.jobs, args.vectorize, args.threads)
         if stop.received:
             print(f"layered: {stop.summary()}", file=sys.stderr)
             return EXIT_SIGNAL[stop.received[0]]

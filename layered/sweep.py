@@ -112,6 +112,7 @@ def _check_same_run(job: Job) -> None:
 
 
 _STOP: Any = None  # in a worker: the sweep's event, set once it is asked to stop (no new run starts)
+_THREADS: int | None = None  # in a worker: the torch threads its runs and groups compute on, None for its share
 
 
 def _stopped() -> bool:
@@ -157,7 +158,7 @@ def run_job(job: Job, threads: int = 1) -> Outcome:
 
 def run_group(jobs: Sequence[Job]) -> list[Outcome]:
     """Train the seeds of one group (the `jobs`, which differ in their seed alone and share a folder) as one
-    group in this process (`layered.group`), on this worker's share of the cores as torch threads, its output
+    group in this process (`layered.group`), on this worker's threads (`_worker_threads`), its output
     going to that folder's group.log. A group stopped by a signal, or killed, continues from its last checkpoint when
     the same sweep runs again."""
     import torch
@@ -171,7 +172,7 @@ def run_group(jobs: Sequence[Job]) -> list[Outcome]:
         return [Outcome(job, "skipped", "already finished") for job in jobs]
     if _stopped():
         return [_not_started(job) for job in jobs]
-    torch.set_num_threads(usable_cores())
+    torch.set_num_threads(_worker_threads())
     load_plugins(jobs[0].plugins)
     directory = jobs[0].out.parent
     resume = has_group_checkpoint(directory)
@@ -201,8 +202,14 @@ def run_group(jobs: Sequence[Job]) -> list[Outcome]:
 
 
 def _one(task: list[Job]) -> list[Outcome]:
-    """A local sweep's run, on its worker's share of the cores (one where there are as many workers as cores)."""
-    return [run_job(task[0], usable_cores())]
+    """A local sweep's run, on its worker's threads (`_worker_threads`)."""
+    return [run_job(task[0], _worker_threads())]
+
+
+def _worker_threads() -> int:
+    """The torch threads of this worker's runs and groups: those the sweep was given (`--threads`), else the
+    worker's share of the cores (one where there are as many workers as cores)."""
+    return _THREADS or usable_cores()
 
 
 @dataclass
@@ -260,11 +267,12 @@ def process_count(jobs: Sequence[Job], workers: int, vectorize: bool = False) ->
     return max(1, min(workers, len(tasks(jobs, vectorize))))
 
 
-def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tuple[list[Outcome], SweepStop]:
+def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False,
+              threads: int | None = None) -> tuple[list[Outcome], SweepStop]:
     """Run the jobs in `workers` processes, showing progress over jobs; the outcomes, and the signals
     that stopped the sweep (if any). With `vectorize`, the seeds of each setup (or of each of its groups)
     train as one group (`run_group`), one group per process, each process given its share of the cores for its
-    environments' workers (`env.workers = "auto"`).
+    environments' workers (`env.workers = "auto"`), and computing on that many torch threads, or on `threads`.
 
     Workers run in sessions of their own, so that a Ctrl-C at the terminal reaches the sweep alone,
     which tells them what to do (see SweepStop).
@@ -278,7 +286,7 @@ def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tup
     cores = usable_cores() // processes
     try:
         with ProcessPoolExecutor(max_workers=processes, mp_context=context,
-                                 initializer=_init_worker, initargs=(os.getpid(), stop.event, cores)) as pool:
+                                 initializer=_init_worker, initargs=(os.getpid(), stop.event, cores, threads)) as pool:
             futures = [pool.submit(run_group if vectorize else _one, task) for task in tasks(jobs, vectorize)]
             for future in as_completed(futures):
                 for outcome in future.result():
@@ -292,15 +300,15 @@ def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False) -> tup
     return outcomes, stop
 
 
-def _init_worker(sweep_pid: int, stop: Any, cores: int) -> None:
-    """A worker with its share of the `cores`, on which its runs and groups compute, in a session of its own;
-    and the worker ends when the sweep process is gone.
+def _init_worker(sweep_pid: int, stop: Any, cores: int, threads: int | None = None) -> None:
+    """A worker with its share of the `cores`, on which its runs and groups compute (on `threads` torch threads
+    where given), in a session of its own; and the worker ends when the sweep process is gone.
 
     Without the watch, killing the sweep (not its process group) would leave workers training
     on in the background, writing into run directories nobody is waiting for.
     """
-    global _STOP
-    _STOP = stop
+    global _STOP, _THREADS
+    _STOP, _THREADS = stop, threads
     os.setsid()
     for s in SIGNAL_NAMES:  # between runs, the sweep's signals are for runs that are not started: nothing to stop
         signal.signal(s, signal.SIG_IGN)

@@ -200,7 +200,7 @@ def test_a_checkpoint_that_cannot_be_written_is_the_error_and_the_one_before_res
 
 def test_a_sweep_of_groups_resumes_a_stopped_group(tmp_path, monkeypatch):
     recipe = str(ROOT / "recipes/pendulum/td3.toml")
-    sweep = ["sweep", recipe, "--seeds", "2", "--steps", "200", "--vectorize", "--jobs", "1", *TINY]
+    sweep = ["sweep", recipe, "--seeds", "2", "--steps", "200", "--vectorize", "--jobs", "1", "--threads", "1", *TINY]
     assert main([*sweep, "--out", str(tmp_path / "whole")]) == 0
     setup = next((tmp_path / "whole").rglob("seed0")).parent.relative_to(tmp_path / "whole")
     out = tmp_path / "stopped"

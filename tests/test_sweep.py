@@ -150,15 +150,16 @@ def _threads(out: Path, vectorize: bool) -> int:
 
 @pytest.mark.skipif(usable_cores() < 2, reason="needs two cores")
 @pytest.mark.parametrize("vectorize", [False, True], ids=["run", "group"])
-@pytest.mark.parametrize("share", [1, 2])
-def test_a_local_sweeps_runs_and_groups_compute_on_their_share_of_the_cores(share, vectorize, tmp_path):
+@pytest.mark.parametrize(("share", "given", "threads"), [(1, None, 1), (2, None, 2), (2, 1, 1), (1, 3, 3)])
+def test_a_local_sweeps_runs_and_groups_compute_on_their_share_of_the_cores(share, given, threads, vectorize,
+                                                                             tmp_path):
     """Not torch's default of every core, which a worker's torch had taken before it was given its share (two
     groups of two torch threads each on two cores ran 2.3 times slower than with one each), nor one thread
-    where a run has more cores to itself."""
+    where a run has more cores to itself; and the threads given (`sweep --threads`) where they are."""
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(1, mp_context=context, initializer=_init_worker, initargs=(os.getpid(), None, share)
-                             ) as pool:
-        assert pool.submit(_threads, tmp_path, vectorize).result() == share
+    with ProcessPoolExecutor(1, mp_context=context, initializer=_init_worker,
+                             initargs=(os.getpid(), None, share, given)) as pool:
+        assert pool.submit(_threads, tmp_path, vectorize).result() == threads
 
 
 def _alive(pid: int) -> bool:
@@ -253,6 +254,9 @@ def test_a_vectorised_sweep_trains_each_setups_seeds_as_one_group(tmp_path):
     assert '"group": [\n    2\n  ]' in (tmp_path / "cut" / runs[2] / "run.json").read_text()
     alone = layered_here("sweep", PENDULUM / "td3.toml", "--group-size", 2, "--out", tmp_path / "u")
     assert alone.returncode == 2 and "needs --vectorize" in alone.stderr and not (tmp_path / "u").exists()
+    on_ray = layered_here("sweep", PENDULUM / "td3.toml", "--threads", 1, "--backend", "ray", "--out", tmp_path / "r")
+    assert on_ray.returncode == 2 and "a Ray task computes on one thread" in on_ray.stderr
+    assert not (tmp_path / "r").exists()
     examples = PENDULUM.parent.parent / "docs" / "examples"  # a plugin's learner, which no group stacks
     refused = layered_here("sweep", examples / "pendulum-centre.toml", "--plugin", examples / "centre.py",
                            "--vectorize", "--out", tmp_path / "t")
