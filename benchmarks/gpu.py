@@ -342,7 +342,8 @@ def _last_line(text: str) -> str:
     return lines[-1] if lines else "no message"
 
 
-def main() -> None:
+def arguments() -> argparse.ArgumentParser:
+    """The benchmark's command line."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cuda", help="cuda (default) or cpu for a dry run")
     parser.add_argument("--modes", default="off,inductor,cudagraphs", help="learner.compile values to time")
@@ -374,6 +375,58 @@ def main() -> None:
                         help="which targets to measure: cheetah (one HalfCheetah-v5 seed), hopper (the Hopper TD3 "
                              "group), realtime (the real-time Hopper TLA group); default all three")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
+    return parser
+
+
+def print_modes(args: argparse.Namespace) -> None:
+    """One seed's rate under each `learner.compile` mode, a row each."""
+    print("\n| learner.compile | steps/s after settling | first updates (s) | wall s |\n|---|---|---|---|")
+    for mode in args.modes.split(","):
+        try:
+            row = one_seed_child(args, mode, args.env, args.hidden)
+        except Failed as e:
+            print(f"| {mode} | failed: {e} | | |", flush=True)
+            continue
+        print(f"| {mode} | {row['steps_per_second']:.1f} | {row['settle_seconds']:.1f} "
+              f"| {row['wall_seconds']:.1f} |", flush=True)
+
+
+def print_sweeps(args: argparse.Namespace) -> None:
+    """A process per seed, at each number of seeds at once, with and without CUDA MPS."""
+    print(f"\n{args.recipe or args.env}, a process per seed (layered sweep --jobs N)\n\n"
+          "| seeds at once | CUDA MPS | aggregate steps/s | per seed steps/s | GPU MiB per seed | wall s |\n"
+          "|---|---|---|---|---|---|")
+    for jobs in map(int, args.jobs.split(",")):
+        for mps in [m == "yes" for m in args.mps.split(",")] if jobs > 1 else (False,):
+            row = sweep(args.device, jobs, args.recipe, args.env, args.hidden, args.steps, args.warmup,
+                        every(args), mps, args.set)
+            seeds = ", ".join(f"{r:.0f}" for r in row["per_seed"])
+            print(f"| {jobs} | {'yes' if mps else 'no'} | {row['aggregate']:.0f} | {seeds} | "
+                  f"{mib(row['mib_per_seed'])} | {row['wall_seconds']:.1f} |", flush=True)
+
+
+def print_groups(args: argparse.Namespace) -> None:
+    """Seeds as groups, at each group size, split, compile mode and environment-worker setting."""
+    print(f"\n{args.recipe or args.env}, seeds as groups (layered train --seeds, one process per group)\n\n"
+          "| K | groups at once | learner.compile | env.workers[:threads] | aggregate steps/s | per seed steps/s "
+          "(each group's) | GPU MiB per seed | wall s |\n|---|---|---|---|---|---|---|---|")
+    for k in map(int, args.groups.split(",")):
+        for splits in (s for s in map(int, args.splits.split(",")) if s <= k):
+            for mode in args.group_modes.split(","):
+                for workers in args.group_workers.split(","):
+                    try:
+                        row = group(args.device, k, args.recipe, args.env, args.hidden, args.steps,
+                                    args.warmup, every(args), mode, workers, args.set, splits)
+                    except Failed as e:
+                        print(f"| {k} | {splits} | {mode} | {workers} | failed: {e} | | | |", flush=True)
+                        continue
+                    print(f"| {k} | {splits} | {mode} | {workers} | {row['aggregate']:.0f} | "
+                          f"{', '.join(f'{r:.0f}' for r in row['per_seed'])} | {mib(row['mib_per_seed'])} | "
+                          f"{row['wall_seconds']:.1f} |", flush=True)
+
+
+def main() -> None:
+    parser = arguments()
     args = parser.parse_args()
     if args.child:
         print(json.dumps(one_seed(args.device, args.child[0], args.env, args.hidden, args.steps, args.warmup,
@@ -381,50 +434,15 @@ def main() -> None:
         return
     import torch
 
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.exit(2, f"gpu.py: no CUDA device here (torch {torch.__version__}); --device cpu makes a dry run\n")
     where = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {os.cpu_count()} cores"
     print(f"TD3 ({args.hidden}) on {args.env}, {args.steps} steps per run ({args.warmup} random), "
           f"torch {torch.__version__}, {where}")
-    if "modes" in args.parts:
-        print("\n| learner.compile | steps/s after settling | first updates (s) | wall s |\n|---|---|---|---|")
-        for mode in args.modes.split(","):
-            try:
-                row = one_seed_child(args, mode, args.env, args.hidden)
-            except Failed as e:
-                print(f"| {mode} | failed: {e} | | |", flush=True)
-                continue
-            print(f"| {mode} | {row['steps_per_second']:.1f} | {row['settle_seconds']:.1f} "
-                  f"| {row['wall_seconds']:.1f} |", flush=True)
-    if "sweep" in args.parts:
-        print(f"\n{args.recipe or args.env}, a process per seed (layered sweep --jobs N)\n\n"
-              "| seeds at once | CUDA MPS | aggregate steps/s | per seed steps/s | GPU MiB per seed | wall s |\n"
-              "|---|---|---|---|---|---|")
-        for jobs in map(int, args.jobs.split(",")):
-            for mps in [m == "yes" for m in args.mps.split(",")] if jobs > 1 else (False,):
-                row = sweep(args.device, jobs, args.recipe, args.env, args.hidden, args.steps, args.warmup,
-                            every(args), mps, args.set)
-                seeds = ", ".join(f"{r:.0f}" for r in row["per_seed"])
-                print(f"| {jobs} | {'yes' if mps else 'no'} | {row['aggregate']:.0f} | {seeds} | "
-                      f"{mib(row['mib_per_seed'])} | {row['wall_seconds']:.1f} |", flush=True)
-    if "group" in args.parts:
-        print(f"\n{args.recipe or args.env}, seeds as groups (layered train --seeds, one process per group)\n\n"
-              "| K | groups at once | learner.compile | env.workers[:threads] | aggregate steps/s | per seed steps/s "
-              "(each group's) | GPU MiB per seed | wall s |\n|---|---|---|---|---|---|---|---|")
-        for k in map(int, args.groups.split(",")):
-            for splits in (s for s in map(int, args.splits.split(",")) if s <= k):
-                for mode in args.group_modes.split(","):
-                    for workers in args.group_workers.split(","):
-                        try:
-                            row = group(args.device, k, args.recipe, args.env, args.hidden, args.steps,
-                                        args.warmup, every(args), mode, workers, args.set, splits)
-                        except Failed as e:
-                            print(f"| {k} | {splits} | {mode} | {workers} | failed: {e} | | | |", flush=True)
-                            continue
-                        print(f"| {k} | {splits} | {mode} | {workers} | {row['aggregate']:.0f} | "
-                              f"{', '.join(f'{r:.0f}' for r in row['per_seed'])} | {mib(row['mib_per_seed'])} | "
-                              f"{row['wall_seconds']:.1f} |", flush=True)
-    if "targets" in args.parts:
-        print_targets(args)
-
+    parts = {"modes": print_modes, "sweep": print_sweeps, "group": print_groups, "targets": print_targets}
+    for name, part in parts.items():
+        if name in args.parts:
+            part(args)
 
 if __name__ == "__main__":
     main()
