@@ -18,8 +18,9 @@ import pytest
 import torch
 
 torch.set_num_threads(1)
-# The commands the tests start compute on one thread too: the suite runs a test per core (pytest -n auto), and a
-# child on every core beside it ran several times slower than on one (a sweep of a group beside two busy processes: 64-84 s against 18).
+# The commands the tests start compute on one thread too: the suite runs a test per core (pytest -n auto), and
+# a child on every core beside it ran several times slower than on one (a sweep of a group beside two busy
+# processes: 64-84 s against 18).
 os.environ["OMP_NUM_THREADS"] = "1"
 
 import layered.runs as runs  # noqa: E402
