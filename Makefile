@@ -6,7 +6,10 @@ BIN    := $(VENV)/bin
 RECIPE ?= recipes/pendulum/tla-c.toml
 OUT    ?= runs/$(basename $(notdir $(RECIPE)))-$(shell date +%Y%m%d-%H%M%S)
 
-.PHONY: run test lint bench wheel-check learning-check gpu-check
+WHEEL_PYTHON ?= $(shell $(PYTHON) -c 'import sys; print("%d.%d" % sys.version_info[:2])')
+WHEEL_EXTRAS ?=
+
+.PHONY: run test lint bench wheelhouse wheel-check learning-check gpu-check
 
 run: $(VENV)/.installed
 	$(BIN)/layered train $(RECIPE) --out $(OUT)
@@ -24,15 +27,35 @@ gpu-check: $(VENV)/.installed
 	$(BIN)/python -m pytest -q -k "cuda or cudagraphs or gpu"
 	$(BIN)/python benchmarks/gpu.py --parts targets --modes cudagraphs --group-modes cudagraphs --group-workers auto --splits 1,2
 
-# The wheel, installed with its extras into a clean environment, trains a shipped recipe (named, not a
-# path) and exports it, outside the checkout.
-wheel-check: $(VENV)/.installed
-	rm -rf dist .wheel-venv
+# For a machine without a package index that has its own torch (a cluster's GPU node): the project's wheel
+# and every dependency but torch, as wheels for Python $(WHEEL_PYTHON) on this platform, with the extras named in
+# WHEEL_EXTRAS (e.g. onnx,tensorboard). There: pip install --no-index --find-links wheelhouse layered-control
+wheelhouse: $(VENV)/.installed
+	rm -rf wheelhouse
 	$(BIN)/python -m pip install --quiet build
-	$(BIN)/python -m build --wheel --outdir dist .
+	$(BIN)/python -m build --wheel --outdir wheelhouse .
+	$(BIN)/python -c "$$REQUIREMENTS_BUT_TORCH" "$(WHEEL_EXTRAS)" > wheelhouse/requirements.txt
+	$(BIN)/python -m pip download --quiet --dest wheelhouse --only-binary=:all: --python-version $(WHEEL_PYTHON) \
+		--requirement wheelhouse/requirements.txt
+
+# The project's requirements (with the extras named in its argument) less torch and the project itself, a line each.
+define REQUIREMENTS_BUT_TORCH
+import re, sys, tomllib
+project = tomllib.load(open("pyproject.toml", "rb"))["project"]
+extras = [name for name in sys.argv[1].split(",") if name]
+wanted = project["dependencies"] + [r for name in extras for r in project["optional-dependencies"][name]]
+print("\n".join(r for r in wanted if re.match(r"[\w.-]+", r)[0] not in ("torch", project["name"])))
+endef
+export REQUIREMENTS_BUT_TORCH
+
+# The wheel and its extras, installed from the wheelhouse alone into a clean environment, train a shipped
+# recipe (named, not a path) and export it, outside the checkout.
+wheel-check: WHEEL_EXTRAS = onnx,tensorboard
+wheel-check: wheelhouse
+	rm -rf .wheel-venv
 	$(PYTHON) -m venv .wheel-venv
 	.wheel-venv/bin/python -m pip install --quiet torch==2.13.0
-	.wheel-venv/bin/python -m pip install --quiet "$$(ls dist/*.whl)[onnx,tensorboard]"
+	.wheel-venv/bin/python -m pip install --quiet --no-index --find-links wheelhouse "layered-control[onnx,tensorboard]"
 	cd "$$(mktemp -d)" && $(CURDIR)/.wheel-venv/bin/layered train pendulum/tla-c --steps 300 --out run \
 		train.warmup=100 eval.every=150 eval.episodes=1 eval.fresh_episodes=1 && \
 		$(CURDIR)/.wheel-venv/bin/layered export run --format onnx
