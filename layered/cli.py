@@ -350,11 +350,16 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 def _evaluate_once(args: argparse.Namespace, run: Any, episodes: int) -> None:
-    from layered.agents import make_aec_env
-    from layered.evaluate import evaluate
+    """The run's evaluation over `episodes` episodes, played side by side as its training's evaluations are;
+    with --plot, the last of them played again through the agent view, for its trace."""
+    from layered.group_eval import evaluate_run, open_run_envs, stacks_over
 
-    env = make_aec_env(run.recipe, active=run.active, evaluation=True, threshold=args.threshold, keep_trace=True)
-    result = evaluate(env, run.learners, episodes, run.seed, progress=True)
+    envs = open_run_envs(run.recipe, episodes)
+    try:
+        evaluator = stacks_over(run.recipe, run.active, envs, evaluation=True, threshold=args.threshold)
+        result = evaluate_run(evaluator, run.learners, episodes, run.seed, progress=True)
+    finally:
+        envs.close()
     threshold = args.threshold if args.threshold is not None else "recipe"
     row = {"phase": "eval", "learn": [], "active": run.active, "auc": None, "threshold": threshold,
            "episodes": episodes, **result.row()}
@@ -365,9 +370,21 @@ def _evaluate_once(args: argparse.Namespace, run: Any, episodes: int) -> None:
     print(f"written to {out}")
     if args.plot:
         png = out.with_suffix(".png")
-        plot_episode(env.trace, env.possible_agents, png, f"{run.recipe.env.id}: last evaluation episode")
+        _plot_last_episode(args, run, episodes, png)
         print(f"episode plot: {png}")
-    env.close()
+
+
+def _plot_last_episode(args: argparse.Namespace, run: Any, episodes: int, png: Path) -> None:
+    """Who acted when in the last episode of the evaluation, played again through the agent view."""
+    from layered.agents import make_aec_env
+    from layered.evaluate import episode_seeds, run_episode
+
+    env = make_aec_env(run.recipe, active=run.active, evaluation=True, threshold=args.threshold, keep_trace=True)
+    try:
+        run_episode(env, run.learners, episode_seeds(run.seed, episodes)[-1])
+        plot_episode(env.trace, env.possible_agents, png, f"{run.recipe.env.id}: last evaluation episode")
+    finally:
+        env.close()
 
 
 def _print_sweep(rows: list[dict[str, Any]], run: Any) -> None:

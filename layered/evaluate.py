@@ -33,7 +33,9 @@ def episode_seeds(seed: int, episodes: int) -> list[int]:
 def evaluate(
     env: LayeredEnv, learners: Mapping[str, Learner], episodes: int, seed: int, progress: bool = False
 ) -> Evaluation:
-    """Mean measures over `episodes` episodes, seeded `episode_seeds(seed, episodes)`: each call, the same starts."""
+    """Mean measures over `episodes` episodes, seeded `episode_seeds(seed, episodes)`: each call, the same starts.
+    One after another through the agent view: the reference that side-by-side evaluations (`layered.group_eval`,
+    which the command line and training use) are tested against."""
     assert env.keep_trace, "evaluation needs an env made with keep_trace=True"
     seeds = tqdm(episode_seeds(seed, episodes), desc="evaluating", unit="episode", disable=not progress)
     return summarise([run_episode(env, learners, episode_seed) for episode_seed in seeds])

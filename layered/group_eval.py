@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from layered.env_group import Envs
 from layered.env_workers import WorkersSetting, open_envs
@@ -66,22 +67,24 @@ def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int) -> 
 
 
 def evaluate_stacks(evaluator: Stacks, learners: Mapping[str, Any], greedy: Callable[[Any, np.ndarray], np.ndarray],
-                    episodes: int, seeds: Sequence[int]) -> list[Evaluation]:
+                    episodes: int, seeds: Sequence[int], progress: bool = False) -> list[Evaluation]:
     """`evaluate_group` of the evaluator's rows, each layer acting through its learner in `learners` (a single
     learner or one stacked over the seeds): `greedy(learner, obs)`, its outputs without exploration ([K, n, obs]
-    -> [K, n, size])."""
+    -> [K, n, size]); with `progress`, a bar of the episodes played."""
     stack, rules, envs = evaluator
     names = [layer.name for layer in stack.layers]
     macs = {names[i]: learners[names[i]].act_macs() for i in stack.active}
     with torch_aside(envs):
-        return evaluate_group(rules, envs, lambda i, obs: greedy(learners[names[i]], obs), macs, episodes, seeds)
+        return evaluate_group(rules, envs, lambda i, obs: greedy(learners[names[i]], obs), macs, episodes, seeds,
+                              progress)
 
 
-def evaluate_run(evaluator: Stacks, learners: Mapping[str, Learner], episodes: int, seed: int) -> Evaluation:
+def evaluate_run(evaluator: Stacks, learners: Mapping[str, Learner], episodes: int, seed: int,
+                 progress: bool = False) -> Evaluation:
     """A single run's evaluation of its present layers over `episodes` episodes seeded from `seed`: what
     `layered.evaluate.evaluate` measures through the agent view, the episodes played side by side."""
     return evaluate_stacks(evaluator, learners, lambda learner, obs: learner.greedy(obs[0])[None], episodes,
-                           [seed])[0]
+                           [seed], progress)[0]
 
 
 def all_rows(seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
@@ -109,10 +112,11 @@ def torch_aside(envs: Envs) -> Iterator[None]:
 
 
 def evaluate_group(rules: Rules, envs: Envs, policy: GroupPolicy, macs: dict[str, int], episodes: int,
-                   seeds: Sequence[int]) -> list[Evaluation]:
+                   seeds: Sequence[int], progress: bool = False) -> list[Evaluation]:
     """Each seed's mean measures over `episodes` episodes seeded as `evaluate` seeds them (`episode_seeds`),
     played side by side: the rules and environments hold `lanes` rows per seed (seed k's lane l is row
-    k * lanes + l), lane l playing the seed's episodes l, l + lanes, ...; lanes that have played theirs wait."""
+    k * lanes + l), lane l playing the seed's episodes l, l + lanes, ...; lanes that have played theirs wait.
+    With `progress`, a bar of the episodes played."""
     rows, present = rules.rows, list(rules.active)
     lanes = rows // len(seeds)
     assert lanes * len(seeds) == rows, "an evaluator holds as many rows for every seed"
@@ -130,6 +134,7 @@ def evaluate_group(rules: Rules, envs: Envs, policy: GroupPolicy, macs: dict[str
         outputs = policy(i, all_rows(seen, deciding).reshape(len(seeds), lanes, -1))
         return outputs.reshape(rows, -1)[deciding]
 
+    bar = tqdm(total=episodes * len(seeds), desc="evaluating", unit="episode", disable=not progress)
     start(live)
     while live.any():
         decided = rules.decide_all(envs.obs, act)
@@ -144,9 +149,11 @@ def evaluate_group(rules: Rules, envs: Envs, policy: GroupPolicy, macs: dict[str
         ended = live & (terminated | truncated)
         for r in np.flatnonzero(ended).tolist():
             measured[r // lanes][int(episode[r])] = meter.finish(r)
+            bar.update()
         episode[ended] += lanes
         again = ended & (episode < episodes)
         if again.any():
             start(again)
         live &= ~ended | again
+    bar.close()
     return [summarise([played[j] for j in range(episodes)]) for played in measured]

@@ -1,5 +1,6 @@
 """Brief training on real environments: every shipped recipe, deep stacks, determinism, the CLI."""
 
+import csv
 import json
 import subprocess
 import sys
@@ -92,10 +93,15 @@ def layered_cli(*args):
 def test_cli_train_then_eval_with_threshold(tmp_path):
     out = tmp_path / "run"
     recipe = PENDULUM / "tla-c.toml"
-    proc = layered_cli("train", recipe, *TINY, "--steps", 200, "--seed", 4, "--out", out)
+    proc = layered_cli("train", recipe, *TINY, "eval.episodes=3", "--steps", 200, "--seed", 4, "--out", out)
     assert proc.returncode == 0, proc.stderr
     assert "| phase | learns |" in proc.stdout and "phase 1: fast" in proc.stderr  # table and progress
     assert load_recipe(out / "recipe.toml").train.seed == 4
+    assert layered_cli("eval", out, "--weights", "final").returncode == 0  # training's last evaluation again
+    again = json.loads((out / "eval" / "threshold-recipe-episodes-3-final.json").read_text())
+    last = list(csv.DictReader((out / "metrics.csv").open()))[-1]
+    assert [float(last[k]) for k in ("return_mean", "return_std", "jerk")] == [again[k] for k in
+                                                                                ("return_mean", "return_std", "jerk")]
     proc = layered_cli("eval", out, "--episodes", 2, "--threshold", 0.0, "--plot")
     assert proc.returncode == 0, proc.stderr
     written = json.loads((out / "eval" / "threshold-0.0-episodes-2.json").read_text())
