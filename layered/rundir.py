@@ -160,15 +160,26 @@ def read_run_info(run_dir: Path) -> RunInfo:
     """How the run in `run_dir` was started."""
     path = run_dir / "run.json"
     if not (run_dir / "recipe.toml").is_file() or not path.is_file():
-        empty = not run_dir.is_dir() or not any(p.name in RUN_FILES for p in run_dir.iterdir())
-        hint = "; a run stopped before it wrote anything starts again with `layered train`" if empty else ""
-        raise RunDirError(f"{run_dir} is not a run directory (no recipe.toml and run.json){hint}")
+        raise RunDirError(f"{run_dir} is not a run directory (no recipe.toml and run.json){_not_a_run_hint(run_dir)}")
     try:
         data = json.loads(path.read_text())
         return RunInfo(str(data["label"]), data["max_steps"], tuple(data["plugins"]), tuple(data.get("group", ())),
                        tuple(data.get("changes", ())))
     except (ValueError, KeyError, TypeError) as e:
         raise RunDirError(f"{path} is damaged ({e.__class__.__name__}: {e})") from None
+
+
+def _not_a_run_hint(directory: Path) -> str:
+    """What to do with a directory that is not a run's: name the runs it holds (a group's seeds, a sweep's), or say
+    that a run stopped before it wrote anything starts again."""
+    runs = sorted((str(p.parent.relative_to(directory)) for p in directory.rglob("run.json")),
+                  key=lambda name: (len(name), name))
+    if runs:
+        named = ", ".join(runs[:4]) + (f" and {len(runs) - 4} more" if len(runs) > 4 else "")
+        return f"; it holds the runs {named}: name one of them ({directory / runs[0]})"
+    if not directory.is_dir() or not any(p.name in RUN_FILES for p in directory.iterdir()):
+        return "; a run stopped before it wrote anything starts again with `layered train`"
+    return ""
 
 
 def record_change(run_dir: Path, recipe_text: str, change: dict[str, Any]) -> None:
