@@ -31,10 +31,10 @@ gpu-check: $(VENV)/.installed
 # and every dependency but torch, as wheels for Python $(WHEEL_PYTHON) on this platform, with the extras named in
 # WHEEL_EXTRAS (e.g. onnx,tensorboard). There: pip install --no-index --find-links wheelhouse layered-control
 wheelhouse: $(VENV)/.installed
-	rm -rf wheelhouse
+	requirements="$$($(BIN)/python -c "$$REQUIREMENTS_BUT_TORCH" "$(WHEEL_EXTRAS)")" && rm -rf wheelhouse && \
+		mkdir wheelhouse && printf '%s\n' "$$requirements" > wheelhouse/requirements.txt
 	$(BIN)/python -m pip install --quiet build
 	$(BIN)/python -m build --wheel --outdir wheelhouse .
-	$(BIN)/python -c "$$REQUIREMENTS_BUT_TORCH" "$(WHEEL_EXTRAS)" > wheelhouse/requirements.txt
 	$(BIN)/python -m pip download --quiet --dest wheelhouse --only-binary=:all: --python-version $(WHEEL_PYTHON) \
 		--requirement wheelhouse/requirements.txt
 
@@ -42,8 +42,10 @@ wheelhouse: $(VENV)/.installed
 define REQUIREMENTS_BUT_TORCH
 import re, sys, tomllib
 project = tomllib.load(open("pyproject.toml", "rb"))["project"]
-extras = [name for name in sys.argv[1].split(",") if name]
-wanted = project["dependencies"] + [r for name in extras for r in project["optional-dependencies"][name]]
+extras, known = [name for name in sys.argv[1].split(",") if name], project["optional-dependencies"]
+if unknown := [name for name in extras if name not in known]:
+    sys.exit(f"WHEEL_EXTRAS: no extra {unknown[0]!r}; the extras: {', '.join(known)}")
+wanted = project["dependencies"] + [r for name in extras for r in known[name]]
 print("\n".join(r for r in wanted if re.match(r"[\w.-]+", r)[0] not in ("torch", project["name"])))
 endef
 export REQUIREMENTS_BUT_TORCH
