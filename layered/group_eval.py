@@ -61,9 +61,10 @@ def open_run_envs(recipe: Recipe, episodes: int) -> Envs:
     return open_envs(recipe.env.id, eval_lanes(episodes, 1), 0, recipe.env.threads, True)
 
 
-def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int) -> Stacks:
-    """A single run's evaluator of `episodes` episodes: its stack over `open_run_envs`."""
-    return stacks_over(recipe, active, open_run_envs(recipe, episodes), evaluation=True)
+def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int, threshold: float | None = None) -> Stacks:
+    """A single run's evaluator of `episodes` episodes: its stack (at the recipe's evaluation thresholds, or
+    `threshold`) over `open_run_envs`."""
+    return stacks_over(recipe, active, open_run_envs(recipe, episodes), evaluation=True, threshold=threshold)
 
 
 def evaluate_stacks(evaluator: Stacks, learners: Mapping[str, Any], greedy: Callable[[Any, np.ndarray], np.ndarray],
