@@ -46,6 +46,20 @@ def stored(group, name, k):
     return group.learners[name].replay.seed_rows(k)
 
 
+def run_first_phase_then_replay(group, recipes, steps=230):
+    """Run the group's first phase for `steps` base steps with no budget to stop it, then yield, per seed, its
+    index and its own agent-view environment, reset as the group reset it (closed after)."""
+    phase = phases_of(recipes[0])[0]
+    for seed in group.seeds:
+        seed.state.start_phase(0, phase.learn, 10**9, 10**9)
+    group.run_phase(phase, steps)
+    for k, recipe_k in enumerate(recipes):
+        env = make_aec_env(recipe_k, active=list(phase.active))
+        env.reset(seed=recipe_k.train.seed)
+        yield k, env
+        env.close()
+
+
 @pytest.mark.parametrize("recipe, overrides", [
     ("inverted-double-pendulum/tla-realtime.toml", ["train.order=joint"]),  # delays, early ends, 2 layers learn
     ("pendulum/tla-o.toml", ["train.order=joint", "train.warmup=400"]),  # a gate committing and deferring
@@ -56,17 +70,12 @@ def test_each_seeds_transitions_are_those_its_own_stack_gives(recipe, overrides,
     action by action through each seed's own agent view (the single loop's semantics): the same
     observations, rewards, discounts and ends, for every layer."""
     group, recipes, _ = tiny_group(recipe, [0, 3], tmp_path, [*overrides, "train.warmup=100000"])
-    phase = phases_of(recipes[0])[0]
-    for seed in group.seeds:
-        seed.state.start_phase(0, phase.learn, 10**9, 10**9)
-    group.run_phase(phase, 230)
-    for k, recipe_k in enumerate(recipes):
-        env = make_aec_env(recipe_k, active=list(phase.active))
-        env.reset(seed=recipe_k.train.seed)
-        theirs = {name: stored(group, name, k) for name in phase.learn}
-        actions = {name: iter(theirs[name][1]) for name in phase.learn}
+    learn = phases_of(recipes[0])[0].learn
+    for k, env in run_first_phase_then_replay(group, recipes):
+        theirs = {name: stored(group, name, k) for name in learn}
+        actions = {name: iter(theirs[name][1]) for name in learn}
         mine = play_through_agent_view(env, lambda name, actions=actions: next(actions[name], None))
-        for name in phase.learn:
+        for name in learn:
             obs, action, reward, next_obs, not_done, discount = theirs[name]
             # the replay ends where the first layer runs out of actions: at most a slow period short
             assert len(mine[name]) >= len(obs) - 8 > 10, name
@@ -77,7 +86,6 @@ def test_each_seeds_transitions_are_those_its_own_stack_gives(recipe, overrides,
                 assert np.allclose(transition.next_obs, next_obs[t], atol=1e-6), (name, t)
                 assert (1.0 - transition.terminated) == not_done[t, 0], (name, t)
                 assert transition.discount == pytest.approx(float(discount[t, 0])), (name, t)
-        env.close()
 
 
 # episodes one after the other; two at a time; more lanes than episodes; a phase with a layer not yet present
@@ -165,12 +173,7 @@ def test_a_repeating_layers_decisions_carry_the_path_its_own_stack_gives(tmp_pat
         observe(obs, output, reward, next_obs, terminated, discount, rows, paths)
 
     learner.observe = record
-    for seed in group.seeds:
-        seed.state.start_phase(0, phase.learn, 10**9, 10**9)
-    group.run_phase(phase, 230)
-    for k, recipe_k in enumerate(recipes):
-        env = make_aec_env(recipe_k, active=list(phase.active))
-        env.reset(seed=recipe_k.train.seed)
+    for k, env in run_first_phase_then_replay(group, recipes):
         outputs = iter([d[1] for d in decisions[k]])
         mine = play_through_agent_view(env, lambda _, outputs=outputs: next(outputs, None))[name]
         assert len(mine) == len(decisions[k]) > 20 and any(len(d[6]) > 1 for d in decisions[k])
@@ -182,7 +185,6 @@ def test_a_repeating_layers_decisions_carry_the_path_its_own_stack_gives(tmp_pat
             assert len(alone.path) == len(path), t
             for (o1, r1, u1), (o2, r2, u2) in zip(alone.path, path, strict=True):
                 assert np.allclose(o1, o2, atol=1e-6) and r1 == pytest.approx(r2, abs=1e-5) and u1 == u2, t
-        env.close()
 
 
 def test_each_seed_reads_back_the_losses_of_the_updates_it_took_part_in():
