@@ -352,13 +352,13 @@ def _eval(args: argparse.Namespace) -> int:
 def _evaluate_once(args: argparse.Namespace, run: Any, episodes: int) -> None:
     """The run's evaluation over `episodes` episodes, played side by side as its training's evaluations are;
     with --plot, the last of them played again through the agent view, for its trace."""
-    from layered.group_eval import evaluate_run, open_run_evaluator
+    from layered.group_eval import close_evaluator, evaluate_run, open_run_evaluator
 
     evaluator = open_run_evaluator(run.recipe, run.active, episodes, args.threshold)
     try:
         result = evaluate_run(evaluator, run.learners, episodes, run.seed, progress=True)
     finally:
-        evaluator[2].close()
+        close_evaluator(evaluator)
     threshold = args.threshold if args.threshold is not None else "recipe"
     row = {"phase": "eval", "learn": [], "active": run.active, "auc": None, "threshold": threshold,
            "episodes": episodes, **result.row()}

@@ -35,7 +35,7 @@ from layered.env_group import Envs
 from layered.envs import make_env, snapshot_env
 from layered.errors import Diverged
 from layered.events import EventLog
-from layered.group_eval import Stacks, all_rows, eval_lanes, evaluate_stacks, open_stacks
+from layered.group_eval import Stacks, all_rows, close_evaluator, eval_lanes, evaluate_stacks, open_stacks
 from layered.group_state import (
     GROUP_CHECKPOINT,
     GroupCheckpoint,
@@ -402,7 +402,7 @@ class Group:
         finally:
             bar.close()
             envs.close()
-            evaluator[2].close()
+            close_evaluator(evaluator)
         return [PhaseResult(p, phase, loop.step, seed.state.curve[-1][1], curve_auc(self.recipe, seed.state.curve))
                 for seed in self.seeds]
 
@@ -539,7 +539,7 @@ class Group:
             self._fresh(evaluator, phase, rows, "best")
         finally:
             if evaluator is not None:
-                evaluator[2].close()
+                close_evaluator(evaluator)
         if self.recipe.train.select == "final":
             for name, states in final.items():
                 for k, state in enumerate(states):

@@ -67,6 +67,11 @@ def open_run_evaluator(recipe: Recipe, active: Sequence[str], episodes: int, thr
     return stacks_over(recipe, active, open_run_envs(recipe, episodes), evaluation=True, threshold=threshold)
 
 
+def close_evaluator(evaluator: Stacks) -> None:
+    """Close the environments an evaluator plays its episodes in."""
+    evaluator[2].close()
+
+
 def evaluate_stacks(evaluator: Stacks, learners: Mapping[str, Any], greedy: Callable[[Any, np.ndarray], np.ndarray],
                     episodes: int, seeds: Sequence[int], progress: bool = False) -> list[Evaluation]:
     """`evaluate_group` of the evaluator's rows, each layer acting through its learner in `learners` (a single

@@ -17,7 +17,7 @@ import numpy as np
 
 from layered.agents import LayeredEnv, make_aec_env
 from layered.checkpoint import save_checkpoint
-from layered.group_eval import Stacks, evaluate_run, open_run_evaluator
+from layered.group_eval import Stacks, close_evaluator, evaluate_run, open_run_evaluator
 from layered.interrupt import StopRequest, Stopped
 from layered.learners import Learner
 from layered.errors import Diverged
@@ -121,7 +121,7 @@ def _finish_phase(run: Training, state: LoopState, phase: Phase, result: PhaseRe
         row |= _fresh_evaluation(run, evaluator, "best")
     finally:
         if evaluator is not None:
-            evaluator[2].close()
+            close_evaluator(evaluator)
     for name in final:
         learners[name].load_state_dict(final[name])
     return row
@@ -160,7 +160,7 @@ def run_phase(run: Training, state: LoopState, phase: Phase, budget: int) -> Pha
     finally:
         bar.close()
         env.close()
-        evaluator[2].close()
+        close_evaluator(evaluator)
     return PhaseResult(state.phase, phase, state.step, state.curve[-1][1], curve_auc(recipe, state.curve))
 
 
