@@ -81,7 +81,7 @@ def main() -> None:
     from layered.env_workers import EnvWorkers
     from layered.learners.choice_group import ChoiceLearnerGroup
     from layered.learners.td3_group import TD3Group
-    from layered.trainer import phases_of
+    from layered.orders import phases_of
 
     clock = Clock(apart="losses read back")
     for owner, name, part in ((EnvGroup, "step_wait", "environments: steps"),

@@ -106,7 +106,7 @@ def split_command(layered: str, args: argparse.Namespace, k: int, settings: list
 
 def _phases(recipe: str) -> int:
     """How many phases the recipe trains."""
-    code = (f"from layered.recipe import load_recipe; from layered.trainer import phases_of; "
+    code = (f"from layered.recipe import load_recipe; from layered.orders import phases_of; "
             f"print(len(phases_of(load_recipe({recipe!r}))))")
     return json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                                      check=True).stdout)

@@ -23,7 +23,7 @@ from layered.evaluate import evaluate
 from layered.group_eval import evaluate_run, open_run_evaluator
 from layered.learner_set import build_learners
 from layered.run_evals import open_run
-from layered.trainer import phases_of
+from layered.orders import phases_of
 
 RECIPES = Path(__file__).resolve().parent.parent / "recipes"
 

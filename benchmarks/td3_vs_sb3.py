@@ -202,7 +202,7 @@ def latency(recipe_name: str, threads: int, steps: int = 4000) -> dict[str, Any]
     from layered.export import export_stack
     from layered.latency import compare
     from layered.learner_set import build_learners
-    from layered.trainer import phases_of
+    from layered.orders import phases_of
 
     _set_threads(threads)
     recipes = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "recipes")

@@ -130,8 +130,8 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--episodes", type=_positive, help="episodes (default: the recipe's eval.episodes)")
     ev.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--weights", choices=["final", "best"],
-                    help="each phase's final weights or those of its best evaluation (default: the recipe's "
-                    "train.select)")
+                    help="the last phase's final weights or those of its best evaluation (default: the recipe's "
+                    "train.select; layers of earlier phases as they were handed on)")
     ev.add_argument("--threads", type=_positive, help="torch threads")
     _plugin_option(ev, "besides those the run was trained with")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
@@ -151,7 +151,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="policy files for torch alone (default) or for onnxruntime (extra layered-control[onnx])")
     ex.add_argument("--out", type=Path, help="export directory (default RUN_DIR/export-FORMAT)")
     ex.add_argument("--weights", choices=["final", "best"],
-                    help="each phase's final or best weights (default: the recipe's train.select)")
+                    help="the last phase's final or best weights (default: the recipe's train.select; layers of "
+                    "earlier phases as they were handed on)")
     ex.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
     ex.add_argument("--episodes", type=_positive, default=3,
                     help="episodes on which the export is checked against the library and timed (default 3)")
@@ -205,7 +206,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="when a layer's process dies or stalls: go on without it (default; the slower layers "
                     "act alone, a slower layer's last output stays) or stop")
     dp.add_argument("--weights", choices=["final", "best"],
-                    help="each phase's final or best weights (default: the recipe's train.select)")
+                    help="the last phase's final or best weights (default: the recipe's train.select; layers of "
+                    "earlier phases as they were handed on)")
     dp.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
     dp.add_argument("--out", type=Path, help="where to write (default RUN_DIR/deploy)")
     dp.add_argument("--transport", choices=["process", "ray"], default="process",
@@ -362,8 +364,7 @@ def _evaluate_once(args: argparse.Namespace, run: Any, episodes: int) -> None:
     threshold = args.threshold if args.threshold is not None else "recipe"
     row = {"phase": "eval", "learn": [], "active": run.active, "auc": None, "threshold": threshold,
            "episodes": episodes, **result.row()}
-    weights = f"-{args.weights}" if args.weights else ""
-    out = run.eval_dir / f"threshold-{threshold}-episodes-{episodes}{weights}.json"
+    out = run.eval_dir / f"threshold-{threshold}-episodes-{episodes}.json"
     out.write_text(json.dumps(row, indent=2))
     print(results_table([row]))
     print(f"written to {out}")
@@ -403,18 +404,12 @@ def _export(args: argparse.Namespace) -> int:
 
     from layered.export import export_stack
     from layered.latency import compare
-    from layered.learner_set import load_learners
-    from layered.recipe import load_recipe
-    from layered.rundir import run_plugins, warn_if_being_written
-    from layered.trainer import phases_of
+    from layered.run_evals import open_run
 
     if args.format == "onnx" and not _installed("onnxruntime", "onnxscript"):
         return _fail("--format onnx needs the extra layered-control[onnx]: pip install -e '.[onnx]' in the checkout")
-    load_plugins(run_plugins(args.run_dir) + args.plugin)
-    warn_if_being_written(args.run_dir)
-    recipe = load_recipe(args.run_dir / "recipe.toml")
-    active = list(phases_of(recipe)[-1].active)
-    learners = load_learners(recipe, args.run_dir, args.weights)
+    run = open_run(args.run_dir, args.weights, args.plugin)
+    recipe, learners, active = run.recipe, run.learners, run.active
     out = args.out or args.run_dir / f"export-{args.format}"
     torch.set_num_threads(1)  # decisions are timed on one core, as on a robot's controller
     export_stack(recipe, learners, active, out, args.format, args.threshold)

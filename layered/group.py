@@ -58,7 +58,7 @@ from layered.learners.td3 import TD3Config
 from layered.learners.td3_group import TD3Group
 from layered.logs import CsvLog
 from layered.metrics import Evaluation
-from layered.orders import Phase
+from layered.orders import Phase, phases_of
 from layered.pending_losses import PendingLosses
 from layered.progress import Progress
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
@@ -86,7 +86,6 @@ from layered.trainer import (
     curve_auc,
     phase_budget,
     phase_row,
-    phases_of,
 )
 
 

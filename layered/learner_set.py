@@ -10,6 +10,7 @@ import torch
 from layered.agents import make_aec_env
 from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from layered.learners import LEARNERS, Learner
+from layered.orders import stack_weights
 from layered.schema import Recipe, RecipeError
 
 
@@ -32,12 +33,14 @@ def build_learners(recipe: Recipe, device: str | None = None) -> dict[str, Learn
 
 
 def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None) -> dict[str, Learner]:
-    """The learners of a finished run, restored from its checkpoints: each layer's `final` or `best`
-    weights of the last phase it learned in (default: the recipe's `train.select`). They act on the
-    CPU, fastest for one observation at a time, so a run trained on a GPU evaluates anywhere."""
+    """The learners of a finished run, restored from its checkpoints as its last phase ends: the layers that learn
+    in that phase at their `final` or `best` weights (default: the recipe's `train.select`), the others at those
+    their phase handed on (`orders.stack_weights`). They act on the CPU, fastest for one observation at a time,
+    so a run trained on a GPU evaluates anywhere."""
     learners = build_learners(recipe, device="cpu")
-    suffix = {"final": ".pt", "best": ".best.pt"}[weights or recipe.train.select]
+    chosen = stack_weights(recipe, weights)
     for name, learner in learners.items():
+        suffix = {"final": ".pt", "best": ".best.pt"}[chosen[name]]
         learner.load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}{suffix}", name))
     return learners
 

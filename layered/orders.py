@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from layered.registry import Registry
+
+if TYPE_CHECKING:
+    from layered.schema import Recipe
 
 
 @dataclass(frozen=True)
@@ -54,3 +57,17 @@ def explicit(names: Sequence[str], phases: Sequence[Any] = ()) -> list[Phase]:
         out.append(Phase(learn=tuple(phase.learn), active=tuple(n for n in names if n in wanted), steps=phase.steps))
         trained |= set(phase.learn)
     return out
+
+
+def phases_of(recipe: Recipe) -> list[Phase]:
+    """The phases of the recipe's training order."""
+    return ORDERS.get(recipe.train.order)(recipe.layer_names(), recipe.train.phases or [])
+
+
+def stack_weights(recipe: Recipe, weights: str | None = None) -> dict[str, str]:
+    """Which saved weights, `final` or `best`, make each layer of the stack that the run's last phase ends with:
+    `weights` (default: `train.select`) for the layers that learn in that phase, and for every other layer what
+    its own last phase handed on (`train.select`), the weights the last phase trained over and was evaluated with."""
+    last = phases_of(recipe)[-1].learn
+    return {name: (weights or recipe.train.select) if name in last else recipe.train.select
+            for name in recipe.layer_names()}

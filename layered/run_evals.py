@@ -20,12 +20,14 @@ SWEEP_FILE = "threshold-sweep.csv"
 
 @dataclass(frozen=True)
 class TrainedRun:
-    """A finished run ready to evaluate: its recipe, restored learners and the layers of its last phase."""
+    """A finished run ready to evaluate: its recipe, restored learners, the layers of its last phase and the
+    weights asked for (None: the recipe's `train.select`)."""
 
     path: Path
     recipe: Recipe
     learners: dict[str, Learner]
     active: list[str]
+    weights: str | None = None
 
     @property
     def seed(self) -> int:
@@ -34,22 +36,26 @@ class TrainedRun:
 
     @property
     def eval_dir(self) -> Path:
-        folder = self.path / "eval"
-        folder.mkdir(exist_ok=True)
+        """`eval/`, or `eval/weights-<w>/` for weights asked for by name, so that `layered report` reads only
+        evaluations of the weights the run hands on."""
+        folder = self.path / "eval" / (f"weights-{self.weights}" if self.weights else "")
+        folder.mkdir(parents=True, exist_ok=True)
         return folder
 
 
 def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | None = None) -> TrainedRun:
-    """The run in `run_dir` with each phase's `final` or `best` weights (default: its train.select),
-    after importing the plugins it was trained with and `plugins`."""
+    """The run in `run_dir` with its last phase's `final` or `best` weights (default: its train.select; the
+    layers of earlier phases as they were handed on), after importing the plugins it was trained with and
+    `plugins`."""
     from layered.learner_set import load_learners
+    from layered.orders import phases_of
     from layered.rundir import run_plugins, warn_if_being_written
-    from layered.trainer import phases_of
 
     load_plugins(run_plugins(run_dir) + list(plugins or []))  # refuses a directory that holds no run
     warn_if_being_written(run_dir)
     recipe = load_recipe(run_dir / "recipe.toml")
-    return TrainedRun(run_dir, recipe, load_learners(recipe, run_dir, weights), list(phases_of(recipe)[-1].active))
+    return TrainedRun(run_dir, recipe, load_learners(recipe, run_dir, weights), list(phases_of(recipe)[-1].active),
+                      weights)
 
 
 def has_threshold(recipe: Recipe) -> bool:

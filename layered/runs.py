@@ -23,6 +23,7 @@ from layered.logs import CsvLog
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.results import EPISODE_FIELDS, metrics_fields, write_results
 from layered.learners import Learner
+from layered.orders import phases_of
 from layered.rundir import (
     RunDirError,
     RunInfo,
@@ -36,7 +37,7 @@ from layered.rundir import (
 )
 from layered.replay_journal import ReplayJournal, replay_folder
 from layered.runstate import LoopState, load_state, recipe_differences, recipe_digest
-from layered.trainer import Training, phase_budget, phases_of, train_phases
+from layered.trainer import Training, phase_budget, train_phases
 
 
 CHANGEABLE = re.compile(r"layers\[\d+\]\.(learner\.(?!kind$)\w+|action_penalty|updates)$")

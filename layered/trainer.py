@@ -24,7 +24,7 @@ from layered.errors import Diverged
 from layered.events import EventLog
 from layered.logs import CsvLog
 from layered.metrics import Evaluation, normalised_auc
-from layered.orders import ORDERS, Phase
+from layered.orders import Phase, phases_of
 from layered.progress import Progress
 from layered.recipe import Recipe, resolved
 from layered.replay_journal import ReplayJournal
@@ -64,11 +64,6 @@ class Training:
         """Checkpoint the whole training state, with how much of each log it covers."""
         state.log_sizes = {"metrics": self.metrics.size(), "episodes": self.episodes.size()}
         save_state(self.checkpoint, state, self.learners, resolved(self.recipe), self.max_steps, self.journal)
-
-
-def phases_of(recipe: Recipe) -> list[Phase]:
-    """The phases of the recipe's training order."""
-    return ORDERS.get(recipe.train.order)(recipe.layer_names(), recipe.train.phases or [])
 
 
 def phase_budget(recipe: Recipe, phase: Phase, max_steps: int | None) -> int:

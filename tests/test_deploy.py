@@ -27,7 +27,7 @@ from layered.layer_process import Fault, LayerFault, LayerProcess, Link, Reply, 
 from layered.learner_set import build_learners
 from layered.rules import Layer, Rules
 from layered.run_evals import TrainedRun
-from layered.trainer import phases_of
+from layered.orders import phases_of
 
 from test_export import STACKS, SMALL
 

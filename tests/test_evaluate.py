@@ -11,7 +11,7 @@ from layered.evaluate import evaluate
 from layered.group_eval import evaluate_run, open_run_evaluator, stacks_over
 from layered.learner_set import build_learners
 from layered.recipe import load_recipe
-from layered.trainer import phases_of
+from layered.orders import phases_of
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = ["learner.hidden=[16, 16]"]

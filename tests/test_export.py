@@ -14,7 +14,7 @@ from layered.cli import main
 from layered.export import export_stack
 from layered.latency import compare
 from layered.learner_set import build_learners
-from layered.trainer import phases_of
+from layered.orders import phases_of
 
 SMALL = ["learner.hidden=[32, 32]"]
 STACKS = {

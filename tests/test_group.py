@@ -21,7 +21,7 @@ from layered.replay_journal import ReplayJournal
 from layered.results import EPISODE_FIELDS, metrics_fields
 from layered.rundir import RunDirError
 from layered.runs import resume
-from layered.trainer import phases_of
+from layered.orders import phases_of
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ["train.warmup=40", "eval.every=150", "eval.episodes=1", "eval.fresh_episodes=1"]

@@ -1,6 +1,11 @@
 """Training orders give the phases the paper describes, for any depth."""
 
-from layered.orders import ORDERS, Phase
+from pathlib import Path
+
+import pytest
+
+from layered.orders import ORDERS, Phase, stack_weights
+from layered.recipe import load_recipe
 from layered.schema import PhaseConfig
 
 NAMES = ["slow", "mid", "fast"]
@@ -34,3 +39,22 @@ def test_explicit_phases_default_to_learners_plus_everything_trained_before():
 
 def test_joint_trains_every_layer_at_once():
     assert ORDERS.get("joint")(NAMES, []) == [Phase(("slow", "mid", "fast"), ("slow", "mid", "fast"))]
+
+
+PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
+
+
+@pytest.mark.parametrize("name, select, weights, expected", [
+    # TLA-C: the fast layer learns last, over the slow layer that its phase was handed
+    ("tla-c.toml", "best", "final", {"slow": "best", "fast": "final"}),
+    ("tla-c.toml", "final", "best", {"slow": "final", "fast": "best"}),
+    ("tla-c.toml", "best", None, {"slow": "best", "fast": "best"}),
+    # TLA-O: the slow gate layer learns last, over the fast layer
+    ("tla-o.toml", "best", "final", {"slow": "final", "fast": "best"}),
+    # one phase: every layer learns in the last
+    ("tla-joint.toml", "best", "final", {"slow": "final", "fast": "final"}),
+])
+def test_the_stack_of_a_run_is_its_last_phases_weights_over_what_earlier_phases_handed_on(name, select, weights,
+                                                                                          expected):
+    recipe = load_recipe(PENDULUM / name, [f"train.select={select}"])
+    assert stack_weights(recipe, weights) == expected

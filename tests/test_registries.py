@@ -18,7 +18,7 @@ from layered.orders import ORDERS
 from layered.outputs import OutputLayout
 from layered.replay_journal import ReplayJournal
 from layered.runs import train
-from layered.trainer import phases_of
+from layered.orders import phases_of
 
 SMALL = ["learner.hidden=[16, 16]", "learner.batch_size=16", "train.warmup=20",
          "eval.episodes=1", "eval.fresh_episodes=2"]

@@ -18,7 +18,8 @@ from layered.checkpoint import load_checkpoint
 from layered.learner_set import build_learners
 from layered.results import EPISODE_FIELDS, metrics_fields
 from layered.runs import train
-from layered.trainer import Training, phases_of, run_phase
+from layered.orders import phases_of
+from layered.trainer import Training, run_phase
 
 RECIPES = sorted((Path(__file__).parent.parent / "recipes").rglob("*.toml"))
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
@@ -98,7 +99,7 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     assert "| phase | learns |" in proc.stdout and "phase 1: fast" in proc.stderr  # table and progress
     assert load_recipe(out / "recipe.toml").train.seed == 4
     assert layered_cli("eval", out, "--weights", "final").returncode == 0  # training's last evaluation again
-    again = json.loads((out / "eval" / "threshold-recipe-episodes-3-final.json").read_text())
+    again = json.loads((out / "eval" / "weights-final" / "threshold-recipe-episodes-3.json").read_text())
     last = list(csv.DictReader((out / "metrics.csv").open()))[-1]
     assert [float(last[k]) for k in ("return_mean", "return_std", "jerk")] == [again[k] for k in
                                                                                 ("return_mean", "return_std", "jerk")]
@@ -154,6 +155,8 @@ def test_each_phase_keeps_final_and_best_weights_reports_both_fresh_and_hands_on
 
     import torch
 
+    from layered.learner_set import load_learners
+
     recipe = load_recipe(PENDULUM / "tla-c.toml", [*TINY, f"train.select={select}", "eval.fresh_episodes=3"])
     train(recipe, tmp_path, max_steps=600, progress=False)
     rows = json.loads((tmp_path / "results.json").read_text())["phases"]
@@ -173,6 +176,12 @@ def test_each_phase_keeps_final_and_best_weights_reports_both_fresh_and_hands_on
     assert all(torch.equal(chosen[k], handed_on["policy"]["actor"][k]) for k in chosen)
     if rows[0]["best_step"] != rows[0]["steps"]:  # the best was not the last evaluation: the two differ
         assert not all(torch.equal(slow["slow.pt"][k], slow["slow.best.pt"][k]) for k in chosen)
+    fast = {name: load_checkpoint(tmp_path / "checkpoints" / name, "fast")["actor"]
+            for name in ("fast.pt", "fast.best.pt")}
+    for weights, saved in (("final", "fast.pt"), ("best", "fast.best.pt")):  # the slow layer always as handed on
+        learners = load_learners(recipe, tmp_path, weights)
+        assert all(torch.equal(chosen[k], learners["slow"].actor.state_dict()[k]) for k in chosen)
+        assert all(torch.equal(fast[saved][k], learners["fast"].actor.state_dict()[k]) for k in fast[saved])
 
 
 def test_a_layer_starts_from_another_runs_weights_and_the_run_keeps_a_copy(tmp_path):

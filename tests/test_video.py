@@ -10,7 +10,7 @@ import pytest
 import layered.envs  # noqa: F401  (chooses MuJoCo's GL backend: `disable` where no GL library is installed)
 from layered import load_recipe
 from layered.learner_set import build_learners
-from layered.trainer import phases_of
+from layered.orders import phases_of
 from layered.video import COLOURS, write_videos
 
 RECIPES = {  # recipe, episodes (dm_control renders in software here, 30 ms a frame over 1000 steps)
