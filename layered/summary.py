@@ -9,7 +9,7 @@ import re
 import sys
 import tomllib
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +40,7 @@ class Run:
     phase_starts: tuple[int, ...] = ()  # steps since training began at which phases 1, 2, ... started
     phases: tuple[dict[str, Any], ...] = ()  # each phase's results as `results.json` holds them, the last = `final`
     stands: str = ""  # where an unfinished run's last evaluation was ("phase 0, step 75000"); "" once finished
+    setting: tuple[tuple[str, str], ...] = ()  # its resolved recipe as (dotted key, value) pairs (`_setting`)
 
     @property
     def finished(self) -> bool:
@@ -90,7 +91,7 @@ def _read_finished_run(path: Path) -> Run:
         seed=int(results.get("seed", recipe["train"]["seed"])), realtime=_realtime(recipe),
         final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)},
         curve=_curve(rows, str(final["phase"])), total_curve=_total_curve(rows), phase_starts=_phase_starts(rows),
-        phases=tuple(results["phases"]),
+        phases=tuple(results["phases"]), setting=_setting(recipe),
     )
 
 
@@ -109,8 +110,23 @@ def _read_unfinished_run(path: Path) -> Run:
         path=path, env=recipe["env"]["id"], label=info.get("label") or _label(path), seed=int(recipe["train"]["seed"]),
         realtime=_realtime(recipe), final=final, curve=_curve(rows, last["phase"]), total_curve=_total_curve(rows),
         phase_starts=_phase_starts(rows), phases=(*before, {**final, "learn": last["learn"].split("+")}),
-        stands=f"phase {last['phase']}, step {last['step']}",
+        stands=f"phase {last['phase']}, step {last['step']}", setting=_setting(recipe),
     )
+
+
+NOT_A_SETTING = frozenset({"train.seed", "train.checkpoint_every", "env.workers", "env.threads", "log"})
+"""Recipe keys that differ between the seeds of one setup, or change no number it reports."""
+
+
+def _setting(recipe: dict[str, Any], prefix: str = "") -> tuple[tuple[str, str], ...]:
+    """A resolved recipe as (dotted key, value) pairs, layers by name and `NOT_A_SETTING` left out: what tells
+    the setups of runs filed under one label apart."""
+    if isinstance(recipe, list) and recipe and all(isinstance(v, dict) and "name" in v for v in recipe):
+        recipe = {v["name"]: {k: x for k, x in v.items() if k != "name"} for v in recipe}
+    if isinstance(recipe, dict):
+        return tuple(pair for k, v in recipe.items() if f"{prefix}{k}" not in NOT_A_SETTING
+                     for pair in _setting(v, f"{prefix}{k}."))
+    return ((prefix[:-1], recipe if isinstance(recipe, str) else json.dumps(recipe, sort_keys=True)),)
 
 
 def _metrics(path: Path) -> list[dict[str, str]]:
@@ -190,9 +206,10 @@ class Setup:
 
 
 def group(runs: Iterable[Run]) -> list[Setup]:
-    """Runs grouped by (environment, method), in the paper's method order."""
+    """Runs grouped by (environment, method), in the paper's method order; runs of different recipes under one
+    label are told apart first (`told_apart`)."""
     by_key: dict[tuple[str, str], list[Run]] = {}
-    for run in runs:
+    for run in told_apart(runs):
         by_key.setdefault((run.env, run.method), []).append(run)
     setups = [Setup(env, rs[0].label, tuple(sorted(rs, key=lambda r: r.seed))) for (env, _), rs in by_key.items()]
 
@@ -201,6 +218,24 @@ def group(runs: Iterable[Run]) -> list[Setup]:
         return (s.env, rank, s.label)
 
     return sorted(setups, key=order)
+
+
+def told_apart(runs: Iterable[Run]) -> list[Run]:
+    """The runs, each label lengthened by the recipe's `key=value` wherever runs of its environment and label differ
+    at that key (a recipe trained with overrides keeps its name), so that their seeds are not pooled. A key that
+    some of them lack does not count: a run of older code lacks keys added since, and an unset key is not
+    written."""
+    by_key: dict[tuple[str, str], list[Run]] = {}
+    for run in runs:
+        by_key.setdefault((run.env, run.label), []).append(run)
+    out = []
+    for rs in by_key.values():
+        settings = [dict(r.setting) for r in rs]
+        shared = set.intersection(*(set(s) for s in settings))
+        differ = sorted(k for k in shared if len({s[k] for s in settings}) > 1)
+        out += [replace(r, label=" ".join([r.label, *(f"{k}={s[k]}" for k in differ)])) if differ else r
+                for r, s in zip(rs, settings, strict=True)]
+    return out
 
 
 def find_runs(paths: Sequence[Path], unfinished: bool = False) -> list[Run]:

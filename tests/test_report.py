@@ -77,6 +77,30 @@ def test_grouping_orders_methods_as_the_paper():
     assert [len(s.runs) for s in setups] == [1, 1, 1, 2]
 
 
+def test_runs_of_different_recipes_under_one_label_are_setups_of_their_own():
+    from dataclasses import replace
+
+    from layered.summary import _setting
+
+    def at(seed, penalty, order, older=False):
+        recipe = {"env": {"id": "Pendulum-v1"}, "train": {"seed": seed, "order": order},
+                  "layers": [{"name": "slow", "period": 4}, {"name": "fast", "action_penalty": penalty}]}
+        if not older:
+            recipe["train"]["select"] = "best"  # a key older runs lack does not split them
+        return replace(run("p/tla-c", seed, 0, 0, []), setting=_setting(recipe))
+
+    flat = {"layers.fast.a": "[1, 2]"}
+    assert dict(_setting({"layers": [{"name": "fast", "a": [1, 2]}], "train": {"seed": 3, "checkpoint_every": 9},
+                          "log": {"tensorboard": True}, "env": {"workers": 2}})) == flat
+    setups = group([at(0, 1.0, "slow-to-fast"), at(1, 1.0, "slow-to-fast", older=True), at(0, 2.0, "explicit"),
+                    at(1, 2.0, "explicit")])
+    assert [(s.label, [r.seed for r in s.runs]) for s in setups] == [
+        ("p/tla-c layers.fast.action_penalty=1.0 train.order=slow-to-fast", [0, 1]),
+        ("p/tla-c layers.fast.action_penalty=2.0 train.order=explicit", [0, 1]),
+    ]
+    assert [len(s.runs) for s in group([at(0, 1.0, "joint"), at(1, 1.0, "joint")])] == [2]  # the seed alone: one
+
+
 def test_report_command_on_real_runs(tmp_path):
     for name, seed in (("td3", 0), ("td3", 1), ("tla-c", 0)):
         recipe = load_recipe(PENDULUM / f"{name}.toml", [*TINY, f"train.seed={seed}"])
