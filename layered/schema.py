@@ -3,8 +3,8 @@ their errors, which name the source, the key and what was expected."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
-from typing import Any, Literal
+from collections.abc import Iterable, Iterator, Mapping
+from typing import Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
@@ -285,6 +285,22 @@ class Recipe(Section):
         scale = self.reward_per_step()
         assert scale is not None, "recipes are checked to know the return range per step"
         return layer.action_penalty * scale
+
+
+def unset_by_default() -> frozenset[str]:
+    """The dotted keys whose default is unset (None), a layer's as `layers.*.<key>`: a resolved recipe leaves such
+    a key out while it is unset, so a run's recipe without it ran with it unset."""
+    return frozenset(_unset_keys(Recipe, ""))
+
+
+def _unset_keys(model: type[Section], prefix: str) -> Iterator[str]:
+    for name, field in model.model_fields.items():
+        tables = [t for t in (field.annotation, *get_args(field.annotation)) if isinstance(t, type)
+                  and not get_args(t) and issubclass(t, Section)]
+        if not field.is_required() and field.default is None:
+            yield prefix + name
+        elif tables:
+            yield from _unset_keys(tables[0], f"{prefix}{name}.*." if name == "layers" else f"{prefix}{name}.")
 
 
 def key_path(loc: Iterable[Any]) -> str:

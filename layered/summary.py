@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from layered.report import count
+from layered.schema import unset_by_default
 
 PHASES_FILE = "phases.json"  # an unfinished run's finished phases, as results.json will hold them
 
@@ -222,20 +223,28 @@ def group(runs: Iterable[Run]) -> list[Setup]:
 
 def told_apart(runs: Iterable[Run]) -> list[Run]:
     """The runs, each label lengthened by the recipe's `key=value` wherever runs of its environment and label differ
-    at that key (a recipe trained with overrides keeps its name), so that their seeds are not pooled. A key that
-    some of them lack does not count: a run of older code lacks keys added since, and an unset key is not
-    written."""
+    at that key (a recipe trained with overrides keeps its name), so that their seeds are not pooled. A key whose
+    default is unset (`unset_by_default`) is `unset` where a recipe lacks it, as a resolved recipe leaves it out;
+    any other key that some of them lack does not count: a run of older code lacks keys added since."""
     by_key: dict[tuple[str, str], list[Run]] = {}
     for run in runs:
         by_key.setdefault((run.env, run.label), []).append(run)
+    unset = unset_by_default()
     out = []
     for rs in by_key.values():
         settings = [dict(r.setting) for r in rs]
-        shared = set.intersection(*(set(s) for s in settings))
-        differ = sorted(k for k in shared if len({s[k] for s in settings}) > 1)
-        out += [replace(r, label=" ".join([r.label, *(f"{k}={s[k]}" for k in differ)])) if differ else r
+        keys = set().union(*settings)
+        counted = [k for k in keys if all(k in s for s in settings) or re.sub(LAYER_KEY, "layers.*.", k) in unset]
+        differ = sorted(k for k in counted if len({s.get(k, UNSET) for s in settings}) > 1)
+        out += [replace(r, label=" ".join([r.label, *(f"{k}={s.get(k, UNSET)}" for k in differ)])) if differ else r
                 for r, s in zip(rs, settings, strict=True)]
     return out
+
+
+UNSET = "unset"
+"""How a setup's label names a key left unset."""
+LAYER_KEY = r"^layers\.[^.]+\."
+"""A layer's key as `_setting` writes it, `layers.<name>.`."""
 
 
 def find_runs(paths: Sequence[Path], unfinished: bool = False) -> list[Run]:

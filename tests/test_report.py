@@ -99,6 +99,10 @@ def test_runs_of_different_recipes_under_one_label_are_setups_of_their_own():
         ("p/tla-c layers.fast.action_penalty=2.0 train.order=explicit", [0, 1]),
     ]
     assert [len(s.runs) for s in group([at(0, 1.0, "joint"), at(1, 1.0, "joint")])] == [2]  # the seed alone: one
+    # a key unset by default is left out of a resolved recipe while unset: a layer started from weights is apart
+    started = replace(at(1, 1.0, "joint"), setting=(*at(1, 1.0, "joint").setting, ("layers.slow.weights", "w.pt")))
+    assert [s.label for s in group([at(0, 1.0, "joint"), started, at(2, 1.0, "joint", older=True)])] == [
+        "p/tla-c layers.slow.weights=unset", "p/tla-c layers.slow.weights=w.pt"]
 
 
 def test_report_command_on_real_runs(tmp_path):
