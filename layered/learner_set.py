@@ -11,7 +11,7 @@ from layered.agents import make_aec_env
 from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from layered.learners import LEARNERS, Learner
 from layered.orders import stack_weights
-from layered.schema import Recipe, RecipeError
+from layered.schema import SEED, Recipe, RecipeError
 
 
 def build_learners(recipe: Recipe, device: str | None = None) -> dict[str, Learner]:
@@ -43,10 +43,6 @@ def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None) -> 
         suffix = {"final": ".pt", "best": ".best.pt"}[chosen[name]]
         learner.load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}{suffix}", name))
     return learners
-
-
-SEED = "{seed}"
-"""In a layer's `weights` path, the run's seed: each seed of a group or sweep starts from its own file."""
 
 
 def start_from_weights(recipe: Recipe, learners: dict[str, Learner]) -> None:

@@ -247,7 +247,7 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
     that setups can be compared at the same number of environment steps."""
     plt = pyplot()
     envs = list(dict.fromkeys(s.env for s in setups))
-    phased = any(len(r.total_curve) > len(r.curve) for s in setups for r in s.runs)
+    phased = any(len(r.total_curve) > len(r.curve) or r.trained_before for s in setups for r in s.runs)
     views = [(False, "environment steps (last phase)"), (True, "environment steps (whole run)")][: 1 + phased]
     fig, axes = plt.subplots(len(views), len(envs), figsize=(5.5 * len(envs), 4 * len(views)), squeeze=False,
                              constrained_layout=True)

@@ -287,6 +287,10 @@ class Recipe(Section):
         return layer.action_penalty * scale
 
 
+SEED = "{seed}"
+"""In a layer's `weights` path, the run's seed: each seed of a group or sweep starts from its own file."""
+
+
 def unset_by_default() -> frozenset[str]:
     """The dotted keys whose default is unset (None), a layer's as `layers.*.<key>`: a resolved recipe leaves such
     a key out while it is unset, so a run's recipe without it ran with it unset."""

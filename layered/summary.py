@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from layered.report import count
-from layered.schema import unset_by_default
+from layered.schema import SEED, unset_by_default
 
 PHASES_FILE = "phases.json"  # an unfinished run's finished phases, as results.json will hold them
 
@@ -42,6 +42,7 @@ class Run:
     phases: tuple[dict[str, Any], ...] = ()  # each phase's results as `results.json` holds them, the last = `final`
     stands: str = ""  # where an unfinished run's last evaluation was ("phase 0, step 75000"); "" once finished
     setting: tuple[tuple[str, str], ...] = ()  # its resolved recipe as (dotted key, value) pairs (`_setting`)
+    trained_before: int = 0  # steps of training behind the weights its layers started from (`_trained_before`)
 
     @property
     def finished(self) -> bool:
@@ -91,8 +92,8 @@ def _read_finished_run(path: Path) -> Run:
         path=path, env=results["env"], label=results.get("label") or _label(path),
         seed=int(results.get("seed", recipe["train"]["seed"])), realtime=_realtime(recipe),
         final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)},
-        curve=_curve(rows, str(final["phase"])), total_curve=_total_curve(rows), phase_starts=_phase_starts(rows),
-        phases=tuple(results["phases"]), setting=_setting(recipe),
+        curve=_curve(rows, str(final["phase"])), phases=tuple(results["phases"]), setting=_setting(recipe),
+        **_whole_run(rows, recipe),
     )
 
 
@@ -109,9 +110,9 @@ def _read_unfinished_run(path: Path) -> Run:
     before = tuple(row for row in finished if row["phase"] < final["phase"])
     return Run(
         path=path, env=recipe["env"]["id"], label=info.get("label") or _label(path), seed=int(recipe["train"]["seed"]),
-        realtime=_realtime(recipe), final=final, curve=_curve(rows, last["phase"]), total_curve=_total_curve(rows),
-        phase_starts=_phase_starts(rows), phases=(*before, {**final, "learn": last["learn"].split("+")}),
-        stands=f"phase {last['phase']}, step {last['step']}", setting=_setting(recipe),
+        realtime=_realtime(recipe), final=final, curve=_curve(rows, last["phase"]),
+        phases=(*before, {**final, "learn": last["learn"].split("+")}),
+        stands=f"phase {last['phase']}, step {last['step']}", setting=_setting(recipe), **_whole_run(rows, recipe),
     )
 
 
@@ -149,13 +150,48 @@ def _curve(rows: Sequence[dict[str, str]], phase: str) -> tuple[tuple[int, float
     return tuple((int(r["step"]), float(r["return_mean"])) for r in rows if r["phase"] == phase)
 
 
-def _total_curve(rows: Sequence[dict[str, str]]) -> tuple[tuple[int, float], ...]:
-    """Evaluation return against environment steps since training began, phases laid end to end.
+def _whole_run(rows: Sequence[dict[str, str]], recipe: dict[str, Any]) -> dict[str, Any]:
+    """A run's `Run` fields over the whole of its training, from the steps behind its start weights on."""
+    before = _trained_before(recipe)
+    return {"total_curve": _total_curve(rows, before), "phase_starts": _phase_starts(rows, before),
+            "trained_before": before}
+
+
+def _trained_before(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) -> int:
+    """The environment steps of training behind the weights a run's layers started from (`weights`): each from
+    the run directory holding that checkpoint, up to the end of the last phase that trained the layer, and the
+    steps behind that run's own start weights; 0 for a file outside a run directory (or a run since moved)."""
+    steps = 0
+    for layer in recipe["layers"]:
+        path = Path(layer.get("weights", "").replace(SEED, str(recipe["train"]["seed"])))
+        source = path.parent.parent
+        if not layer.get("weights") or source in seen or not (source / "metrics.csv").is_file():
+            continue
+        rows = _metrics(source)
+        phases = list(dict.fromkeys(r["phase"] for r in rows))
+        learned = [i for i, p in enumerate(phases)
+                   if layer["name"] in next(r["learn"] for r in rows if r["phase"] == p).split("+")]
+        if learned:
+            ends = _phase_ends(rows)
+            earlier = _trained_before(tomllib.loads((source / "recipe.toml").read_text()), seen | {source})
+            steps = max(steps, earlier + sum(ends[: learned[-1] + 1]))
+    return steps
+
+
+def _phase_ends(rows: Sequence[dict[str, str]]) -> list[int]:
+    """The steps each phase ran, in order: its last evaluation's step."""
+    phases = dict.fromkeys(r["phase"] for r in rows)
+    return [max(int(r["step"]) for r in rows if r["phase"] == phase) for phase in phases]
+
+
+def _total_curve(rows: Sequence[dict[str, str]], before: int = 0) -> tuple[tuple[int, float], ...]:
+    """Evaluation return against environment steps since training began (`before`: the steps behind the run's
+    start weights), phases laid end to end.
 
     A later phase's first evaluation is dropped: it falls on the step where the previous phase
     ended, and the curve shows the stack as trained at each step."""
     points: list[tuple[int, float]] = []
-    offset = 0
+    offset = before
     for phase in dict.fromkeys(r["phase"] for r in rows):
         steps = [(int(r["step"]), float(r["return_mean"])) for r in rows if r["phase"] == phase]
         points += [(offset + s, v) for s, v in steps if not (points and s == 0)]
@@ -163,11 +199,9 @@ def _total_curve(rows: Sequence[dict[str, str]]) -> tuple[tuple[int, float], ...
     return tuple(points)
 
 
-def _phase_starts(rows: Sequence[dict[str, str]]) -> tuple[int, ...]:
+def _phase_starts(rows: Sequence[dict[str, str]], before: int = 0) -> tuple[int, ...]:
     """The steps since training began at which each phase after the first started."""
-    phases = dict.fromkeys(r["phase"] for r in rows)
-    ends = [max(int(r["step"]) for r in rows if r["phase"] == phase) for phase in phases]
-    return tuple(int(x) for x in np.cumsum(ends)[:-1])
+    return tuple(before + int(x) for x in np.cumsum(_phase_ends(rows))[:-1])
 
 
 @dataclass(frozen=True)

@@ -50,6 +50,33 @@ def test_whole_run_curve_lays_phases_end_to_end(tmp_path):
     assert run_.total_curve == ((0, -900.0), (5001, -400.0), (10002, -200.0), (15002, -160.0), (20002, -150.0))
 
 
+def test_a_run_started_from_another_runs_weights_continues_that_runs_steps(tmp_path):
+    def write(path, metrics, layers, seed=1):
+        path.mkdir(parents=True)
+        (path / "results.json").write_text(json.dumps({"env": "Pendulum-v1", "seed": seed, "label": "p/tla-c",
+                                                       "phases": [{"phase": 0, "return_mean": -150.0}]}))
+        (path / "recipe.toml").write_text(f"[train]\nseed = {seed}\n" + "".join(
+            f'[[layers]]\nname = "{name}"\n' + (f'weights = "{w}"\n' if w else "") for name, w in layers))
+        (path / "metrics.csv").write_text("phase,learn,step,return_mean\n" + metrics)
+
+    # slow for 10002 steps, then fast for 7000; a third phase that trains the fast layer alone again, 3000
+    write(tmp_path / "a" / "seed1", "0,slow,0,-900\n0,slow,10002,-200\n1,fast,0,-300\n1,fast,7000,-160\n"
+          "2,fast,0,-160\n2,fast,3000,-150\n", [("slow", None), ("fast", None)])
+    # a fast phase over a's slow layer: its steps follow a's phase 0, not a's later phases that left slow alone
+    write(tmp_path / "b", "0,fast,0,-250\n0,fast,5000,-140\n",
+          [("slow", f"{tmp_path}/a/seed{{seed}}/checkpoints/slow.best.pt"), ("fast", None)])
+    # started from b's fast layer (b: 10002 steps behind it, then 5000 of its own) and from a's slow one
+    write(tmp_path / "c", "0,fast,0,-140\n0,fast,2500,-130\n1,slow+fast,0,-130\n1,slow+fast,2500,-120\n",
+          [("slow", f"{tmp_path}/a/seed1/checkpoints/slow.pt"), ("fast", f"{tmp_path}/b/checkpoints/fast.pt")])
+    # a file outside any run directory: nothing known behind it
+    write(tmp_path / "d", "0,fast,0,-250\n0,fast,5000,-140\n", [("slow", f"{tmp_path}/slow.pt"), ("fast", None)])
+    b, c, d = (find_runs([tmp_path / name])[0] for name in "bcd")
+    assert b.trained_before == 10002 and b.total_curve == ((10002, -250.0), (15002, -140.0))
+    assert c.trained_before == 15002 and c.total_curve == ((15002, -140.0), (17502, -130.0), (20002, -120.0))
+    assert c.phase_starts == (17502,)
+    assert d.trained_before == 0 and d.total_curve == d.curve == ((0, -250.0), (5000, -140.0))
+
+
 def test_bands_are_clipped_to_the_return_bounds():
     from layered.report import band
 
