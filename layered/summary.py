@@ -16,7 +16,6 @@ from typing import Any
 import numpy as np
 
 from layered.report import count
-from layered.schema import SEED, unset_by_default
 
 PHASES_FILE = "phases.json"  # an unfinished run's finished phases, as results.json will hold them
 
@@ -163,9 +162,12 @@ def _trained_before(recipe: dict[str, Any], seen: frozenset[Path] = frozenset())
     steps behind that run's own start weights; 0 for a file outside a run directory (or a run since moved)."""
     steps = 0
     for layer in recipe["layers"]:
-        path = Path(layer.get("weights", "").replace(SEED, str(recipe["train"]["seed"])))
-        source = path.parent.parent
-        if not layer.get("weights") or source in seen or not (source / "metrics.csv").is_file():
+        if not layer.get("weights"):
+            continue
+        from layered.schema import SEED  # (the schema loads torch: only for runs started from weights)
+
+        source = Path(layer["weights"].replace(SEED, str(recipe["train"]["seed"]))).parent.parent
+        if source in seen or not (source / "metrics.csv").is_file():
             continue
         rows = _metrics(source)
         phases = list(dict.fromkeys(r["phase"] for r in rows))
@@ -263,12 +265,16 @@ def told_apart(runs: Iterable[Run]) -> list[Run]:
     by_key: dict[tuple[str, str], list[Run]] = {}
     for run in runs:
         by_key.setdefault((run.env, run.label), []).append(run)
-    unset = unset_by_default()
     out = []
     for rs in by_key.values():
         settings = [dict(r.setting) for r in rs]
         keys = set().union(*settings)
-        counted = [k for k in keys if all(k in s for s in settings) or re.sub(LAYER_KEY, "layers.*.", k) in unset]
+        counted = {k for k in keys if all(k in s for s in settings)}
+        if counted != keys:
+            from layered.schema import unset_by_default  # (the schema loads torch: only where keys are missing)
+
+            unset = unset_by_default()
+            counted |= {k for k in keys if re.sub(LAYER_KEY, "layers.*.", k) in unset}
         differ = sorted(k for k in counted if len({s.get(k, UNSET) for s in settings}) > 1)
         out += [replace(r, label=" ".join([r.label, *(f"{k}={s.get(k, UNSET)}" for k in differ)])) if differ else r
                 for r, s in zip(rs, settings, strict=True)]
