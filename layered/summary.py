@@ -41,6 +41,7 @@ class Run:
     phases: tuple[dict[str, Any], ...] = ()  # each phase's results as `results.json` holds them, the last = `final`
     stands: str = ""  # where an unfinished run's last evaluation was ("phase 0, step 75000"); "" once finished
     setting: tuple[tuple[str, str], ...] = ()  # its resolved recipe as (dotted key, value) pairs (`_setting`)
+    unnamed: tuple[str, ...] = ()  # the `key=value`s that set its setup apart but its label leaves out (`told_apart`)
     trained_before: int = 0  # steps of training behind the weights its layers started from (`_trained_before`)
 
     @property
@@ -49,8 +50,10 @@ class Run:
 
     @property
     def method(self) -> str:
-        """The recipe's name; an unfinished run's is marked, so that it forms a setup of its own."""
-        name = self.label.rsplit("/", 1)[-1]
+        """The recipe's name (with the settings `told_apart` adds to the label); an unfinished run's is marked, so
+        that it forms a setup of its own."""
+        recipe, _, settings = self.label.partition(" ")
+        name = recipe.rsplit("/", 1)[-1] + (f" {settings}" if settings else "")
         return name if self.finished else f"{name} (unfinished)"
 
 
@@ -276,9 +279,33 @@ def told_apart(runs: Iterable[Run]) -> list[Run]:
             unset = unset_by_default()
             counted |= {k for k in keys if re.sub(LAYER_KEY, "layers.*.", k) in unset}
         differ = sorted(k for k in counted if len({s.get(k, UNSET) for s in settings}) > 1)
-        out += [replace(r, label=" ".join([r.label, *(f"{k}={s.get(k, UNSET)}" for k in differ)])) if differ else r
+        named = _naming(settings, differ)
+        out += [replace(r, label=" ".join([r.label, *(f"{k}={s.get(k, UNSET)}" for k in named)]),
+                        unnamed=tuple(f"{k}={s.get(k, UNSET)}" for k in differ if k not in named)) if differ else r
                 for r, s in zip(rs, settings, strict=True)]
     return out
+
+
+def _naming(settings: Sequence[dict[str, str]], differ: Sequence[str]) -> list[str]:
+    """The differing keys that name the setups: all but those of long values (paths, phase lists) that the others
+    already tell apart, the longest left out first."""
+    def setups(keys: Sequence[str]) -> int:
+        return len({tuple(s.get(k, UNSET) for k in keys) for s in settings})
+
+    def longest(key: str) -> int:
+        return max(len(s.get(key, UNSET)) for s in settings)
+
+    named = list(differ)
+    for key in sorted((k for k in differ if longest(k) > LONG_VALUE), key=longest, reverse=True):
+        rest = [k for k in named if k != key]
+        if rest and setups(rest) == setups(differ):
+            named = rest
+    return named
+
+
+LONG_VALUE = 24
+"""Characters beyond which a differing value is left out of setup labels where other keys tell the setups apart
+(report's Runs table lists it)."""
 
 
 UNSET = "unset"

@@ -130,6 +130,21 @@ def test_runs_of_different_recipes_under_one_label_are_setups_of_their_own():
     started = replace(at(1, 1.0, "joint"), setting=(*at(1, 1.0, "joint").setting, ("layers.slow.weights", "w.pt")))
     assert [s.label for s in group([at(0, 1.0, "joint"), started, at(2, 1.0, "joint", older=True)])] == [
         "p/tla-c layers.slow.weights=unset", "p/tla-c layers.slow.weights=w.pt"]
+    # a long value that another key already tells apart is left out of the label (the Runs table names it); a
+    # path in it does not change the method
+    path = "/home/me/runs/slow-layers/seed{seed}/checkpoints/slow.best.pt"
+    probe = replace(at(1, 2.0, "joint"), setting=(*at(1, 2.0, "joint").setting, ("layers.slow.weights", path)))
+    setups = group([at(0, 1.0, "joint"), probe])
+    assert [(s.label, s.method, s.runs[0].unnamed) for s in setups] == [
+        ("p/tla-c layers.fast.action_penalty=1.0", "tla-c layers.fast.action_penalty=1.0",
+         ("layers.slow.weights=unset",)),
+        ("p/tla-c layers.fast.action_penalty=2.0", "tla-c layers.fast.action_penalty=2.0",
+         (f"layers.slow.weights={path}",))]
+    from layered.report import seeds_table
+    assert f"| p/tla-c layers.fast.action_penalty=2.0 (layers.slow.weights={path}) | 1 |" in seeds_table(setups)
+    alone = replace(at(1, 1.0, "joint"), setting=(*at(1, 1.0, "joint").setting, ("layers.slow.weights", path)))
+    # where nothing else tells them apart, the long value names the setup
+    assert f"p/tla-c layers.slow.weights={path}" in [s.label for s in group([at(0, 1.0, "joint"), alone])]
 
 
 def test_report_command_on_real_runs(tmp_path):
