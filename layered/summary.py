@@ -172,14 +172,17 @@ def _trained_before(recipe: dict[str, Any], seen: frozenset[Path] = frozenset())
         source = Path(layer["weights"].replace(SEED, str(recipe["train"]["seed"]))).parent.parent
         if source in seen or not (source / "metrics.csv").is_file():
             continue
-        rows = _metrics(source)
-        phases = list(dict.fromkeys(r["phase"] for r in rows))
-        learned = [i for i, p in enumerate(phases)
-                   if layer["name"] in next(r["learn"] for r in rows if r["phase"] == p).split("+")]
-        if learned:
-            ends = _phase_ends(rows)
-            earlier = _trained_before(tomllib.loads((source / "recipe.toml").read_text()), seen | {source})
-            steps = max(steps, earlier + sum(ends[: learned[-1] + 1]))
+        try:
+            rows = _metrics(source)
+            phases = list(dict.fromkeys(r["phase"] for r in rows))
+            learned = [i for i, p in enumerate(phases)
+                       if layer["name"] in next(r["learn"] for r in rows if r["phase"] == p).split("+")]
+            if learned:
+                earlier = _trained_before(tomllib.loads((source / "recipe.toml").read_text()), seen | {source})
+                steps = max(steps, earlier + sum(_phase_ends(rows)[: learned[-1] + 1]))
+        except (OSError, ValueError, KeyError, TypeError, tomllib.TOMLDecodeError) as e:
+            print(f"layered: warning: {source}, where layer {layer['name']!r} started from, cannot be read "
+                  f"({e.__class__.__name__}: {e}); its steps are not counted", file=sys.stderr)
     return steps
 
 

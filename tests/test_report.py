@@ -1,5 +1,7 @@
 """Reports: aggregation over seeds by hand, and the report command on real runs."""
 
+import contextlib
+import io
 import json
 import subprocess
 import sys
@@ -75,6 +77,11 @@ def test_a_run_started_from_another_runs_weights_continues_that_runs_steps(tmp_p
     assert c.trained_before == 15002 and c.total_curve == ((15002, -140.0), (17502, -130.0), (20002, -120.0))
     assert c.phase_starts == (17502,)
     assert d.trained_before == 0 and d.total_curve == d.curve == ((0, -250.0), (5000, -140.0))
+    # a damaged run behind the weights is a warning, not a damaged run here
+    (tmp_path / "a" / "seed1" / "metrics.csv").write_text("phase,step\n0,x\n")
+    with contextlib.redirect_stderr(io.StringIO()) as err:
+        assert find_runs([tmp_path / "b"])[0].trained_before == 0
+    assert "where layer 'slow' started from, cannot be read" in err.getvalue()
 
 
 def test_bands_are_clipped_to_the_return_bounds():
