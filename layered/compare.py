@@ -28,6 +28,7 @@ MEASURES: tuple[tuple[str, str, str], ...] = (
     ("fresh_final_return_mean", "return, final weights", "{:+.1f}"),
     ("return_mean", "return, final evaluation", "{:+.1f}"),
     ("auc", "AUC", "{:+.3f}"),
+    ("fresh_final_repetition", "action repetition, final weights", "{:+.1%}"),
 )
 """What setups are compared on (a `results.json` key, its name, the format of a difference), where every run
 of both has it; phases are compared on the first two, the fresh-episode returns each phase records."""

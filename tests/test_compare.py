@@ -116,6 +116,23 @@ def test_the_report_compares_setups_and_each_phase_with_the_one_before(tmp_path)
     assert "| 2.5 of 3 seeds |" in text
 
 
+def test_setups_are_compared_on_action_repetition(tmp_path):
+    def run(label, seed, repetition):
+        return _run(label, seed, [{"phase": 0, "learn": ["fast"], "fresh_final_repetition": repetition}])
+
+    # repetition 0.6, 0.7, 0.8 against 0.1, 0.2, 0.3: a difference of 0.5 with variances 0.01 and 0.01, se =
+    # sqrt(0.02 / 3) and df = 4, every seed of the first above every seed of the second
+    runs = [run("p/tla-c", k, 0.6 + 0.1 * k) for k in range(3)] + [run("p/td3", k, 0.1 + 0.1 * k) for k in range(3)]
+    text = write_report(group(runs), tmp_path)
+    row, = list(csv.DictReader((tmp_path / "comparisons.csv").open()))
+    from scipy import stats
+
+    assert row["measure"] == "action repetition, final weights" and float(row["difference"]) == pytest.approx(0.5)
+    assert float(row["p"]) == pytest.approx(2 * stats.t.sf(0.5 / math.sqrt(0.02 / 3), 4))
+    assert float(row["first_above"]) == 1.0
+    assert "| action repetition, final weights | +50.0% [" in text
+
+
 @pytest.mark.parametrize("other", ["unfinished", "not real-time"])
 def test_unfinished_setups_and_other_settings_are_not_compared(tmp_path, other):
     one = [{"phase": 0, "learn": ["fast"], "return_mean": 1.0}]
