@@ -174,9 +174,8 @@ def _trained_before(recipe: dict[str, Any], seen: frozenset[Path] = frozenset())
             continue
         try:
             rows = _metrics(source)
-            phases = list(dict.fromkeys(r["phase"] for r in rows))
-            learned = [i for i, p in enumerate(phases)
-                       if layer["name"] in next(r["learn"] for r in rows if r["phase"] == p).split("+")]
+            learns = {r["phase"]: r["learn"].split("+") for r in rows}.values()  # each phase's, in order
+            learned = [i for i, names in enumerate(learns) if layer["name"] in names]
             if learned:
                 earlier = _trained_before(tomllib.loads((source / "recipe.toml").read_text()), seen | {source})
                 steps = max(steps, earlier + sum(_phase_ends(rows)[: learned[-1] + 1]))
