@@ -2,14 +2,15 @@
 
 Two setups of one environment are compared as independent samples of seeds with Welch's t-test, which
 does not assume equal variances (as Colas et al., 2018, "How many random seeds?", recommend for RL); the
-phases of a stack trained in phases, each against the phase before it, seed by seed, with a paired t-test
-on the seeds' differences (the same seed's stack before and after). Each comparison gives the difference of
-the means with its 95% confidence interval and a two-sided p-value, and how often the first comes out above
-the second: over every pair of a seed of each (the probability of improvement of Agarwal et al., 2021), or
-over the seeds; ties count half. Since a report makes many such tests at once, each p-value also comes adjusted
-for all of them by Holm's step-down method, which holds the chance of any false "p < 0.05" in the report to 5%.
-A method run in several environments is compared with another across them by its probability of improvement
-averaged over the environments, with a stratified-bootstrap interval.
+phases of a stack trained in phases, each against the phase before it, and two setups whose runs share their
+trained layers seed by seed (a probe started from another setup's runs' weights), with a paired t-test on the
+seeds' differences (the same seed's stack before and after, or the same layers under two settings). Each
+comparison gives the difference of the means with its 95% confidence interval and a two-sided p-value, and how
+often the first comes out above the second: over every pair of a seed of each (the probability of improvement
+of Agarwal et al., 2021), or over the seeds; ties count half. Since a report makes many such tests at once, each
+p-value also comes adjusted for all of them by Holm's step-down method, which holds the chance of any false
+"p < 0.05" in the report to 5%. A method run in several environments is compared with another across them by
+its probability of improvement averaged over the environments, with a stratified-bootstrap interval.
 """
 
 from __future__ import annotations
@@ -139,14 +140,25 @@ def setup_pairs(setups: Sequence[Any]) -> Iterator[tuple[Any, Any]]:
 
 
 def between_setups(setups: Sequence[Any]) -> list[Row]:
-    """Each of `setup_pairs`, on every measure of `MEASURES` that all their runs have."""
+    """Each of `setup_pairs`, on every measure of `MEASURES` that all their runs have: seed by seed where the two
+    setups are `paired_seeds`, else as independent samples."""
     rows = []
     for later, earlier in setup_pairs(setups):
+        pair = paired_seeds(later, earlier)
         for key, name, fmt in MEASURES:
             a, b = _values(later.runs, key), _values(earlier.runs, key)
-            if a is not None and b is not None and (result := welch(a, b)) is not None:
-                rows.append(Row(later.env, later.method, earlier.method, name, fmt, False, result))
+            if a is not None and b is not None and (result := (paired if pair else welch)(a, b)) is not None:
+                rows.append(Row(later.env, later.method, earlier.method, name, fmt, pair, result))
     return rows
+
+
+def paired_seeds(first: Any, second: Any) -> bool:
+    """Whether two setups ran the same seeds and each seed's two runs hold trained layers in common (one started
+    from the other's weights, or both from one run's, as a fast phase tried over the slow layers of another
+    setup's runs): then a seed's two returns share its layers' luck, and only their difference measures the setups."""
+    if [r.seed for r in first.runs] != [r.seed for r in second.runs]:  # (each sorted by seed)
+        return False
+    return all(x.shares_layers_with(y) for x, y in zip(first.runs, second.runs, strict=True))
 
 
 def between_phases(setups: Sequence[Any]) -> list[Row]:

@@ -42,7 +42,8 @@ class Run:
     stands: str = ""  # where an unfinished run's last evaluation was ("phase 0, step 75000"); "" once finished
     setting: tuple[tuple[str, str], ...] = ()  # its resolved recipe as (dotted key, value) pairs (`_setting`)
     unnamed: tuple[str, ...] = ()  # the `key=value`s that set its setup apart but its label leaves out (`told_apart`)
-    trained_before: int = 0  # steps of training behind the weights its layers started from (`_trained_before`)
+    trained_before: int = 0  # steps of training behind the weights its layers started from (`_start_weights`)
+    started_from: frozenset[Path] = frozenset()  # the run directories behind those weights, resolved
 
     @property
     def finished(self) -> bool:
@@ -55,6 +56,12 @@ class Run:
         recipe, _, settings = self.label.partition(" ")
         name = recipe.rsplit("/", 1)[-1] + (f" {settings}" if settings else "")
         return name if self.finished else f"{name} (unfinished)"
+
+    def shares_layers_with(self, other: Run) -> bool:
+        """Whether the two runs hold trained layers in common: one started from the other's weights, or both from
+        one run's. Their returns are then not independent samples (as two seeds' are) but a pair."""
+        mine, theirs = self.path.resolve(), other.path.resolve()
+        return mine in other.started_from or theirs in self.started_from or bool(self.started_from & other.started_from)
 
 
 class BrokenRun(ValueError):
@@ -154,35 +161,37 @@ def _curve(rows: Sequence[dict[str, str]], phase: str) -> tuple[tuple[int, float
 
 def _whole_run(rows: Sequence[dict[str, str]], recipe: dict[str, Any]) -> dict[str, Any]:
     """A run's `Run` fields over the whole of its training, from the steps behind its start weights on."""
-    before = _trained_before(recipe)
+    before, sources = _start_weights(recipe)
     return {"total_curve": _total_curve(rows, before), "phase_starts": _phase_starts(rows, before),
-            "trained_before": before}
+            "trained_before": before, "started_from": sources}
 
 
-def _trained_before(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) -> int:
-    """The environment steps of training behind the weights a run's layers started from (`weights`): each from
-    the run directory holding that checkpoint, up to the end of the last phase that trained the layer, and the
-    steps behind that run's own start weights; 0 for a file outside a run directory (or a run since moved)."""
-    steps = 0
+def _start_weights(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) -> tuple[int, frozenset[Path]]:
+    """The environment steps of training behind the weights a run's layers started from (`weights`), and the run
+    directories they came from (resolved): each from the run directory holding that checkpoint, up to the end of
+    the last phase that trained the layer, with that run's own start weights behind it; a file outside a run
+    directory (or in a run since moved) adds nothing."""
+    steps, sources = 0, frozenset[Path]()
     for layer in recipe["layers"]:
         if not layer.get("weights"):
             continue
         from layered.schema import SEED  # (the schema loads torch: only for runs started from weights)
 
-        source = Path(layer["weights"].replace(SEED, str(recipe["train"]["seed"]))).parent.parent
+        source = Path(layer["weights"].replace(SEED, str(recipe["train"]["seed"]))).parent.parent.resolve()
         if source in seen or not (source / "metrics.csv").is_file():
             continue
         try:
             rows = _metrics(source)
             learns = {r["phase"]: r["learn"].split("+") for r in rows}.values()  # each phase's, in order
             learned = [i for i, names in enumerate(learns) if layer["name"] in names]
+            earlier, behind = _start_weights(tomllib.loads((source / "recipe.toml").read_text()), seen | {source})
+            sources |= {source, *behind}
             if learned:
-                earlier = _trained_before(tomllib.loads((source / "recipe.toml").read_text()), seen | {source})
                 steps = max(steps, earlier + sum(_phase_ends(rows)[: learned[-1] + 1]))
         except (OSError, ValueError, KeyError, TypeError, tomllib.TOMLDecodeError) as e:
             print(f"layered: warning: {source}, where layer {layer['name']!r} started from, cannot be read "
                   f"({e.__class__.__name__}: {e}); its steps are not counted", file=sys.stderr)
-    return steps
+    return steps, sources
 
 
 def _phase_ends(rows: Sequence[dict[str, str]]) -> list[int]:

@@ -3,6 +3,7 @@ comparisons of setups and phases."""
 
 import csv
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -131,6 +132,39 @@ def test_setups_are_compared_on_action_repetition(tmp_path):
     assert float(row["p"]) == pytest.approx(2 * stats.t.sf(0.5 / math.sqrt(0.02 / 3), 4))
     assert float(row["first_above"]) == 1.0
     assert "| action repetition, final weights | +50.0% [" in text
+
+
+def test_setups_whose_seeds_share_their_layers_are_compared_seed_by_seed(tmp_path):
+    def run(label, seed, repetition, started_from=()):
+        return replace(_run(label, seed, [{"phase": 0, "learn": ["fast"], "fresh_final_repetition": repetition}]),
+                       started_from=frozenset(Path(p) for p in started_from))
+
+    recipe = [run("p/tla-c", k, r) for k, r in enumerate([0.5, 0.6, 0.7])]
+    # fast phases over the slow layers of the recipe's runs (/r/p/tla-c-<k>); the same but seed 2's from elsewhere
+    values = [0.6, 0.8, 0.7]
+    probe = [run("p/probe", k, r, [f"/r/p/tla-c-{k}"]) for k, r in enumerate(values)]
+    aside = [run("p/aside", k, r, [f"/r/p/tla-c-{k}"] if k < 2 else ["/r/elsewhere"]) for k, r in enumerate(values)]
+    rows = {(r["first"], r["second"]): r for r in _compared(recipe + probe + aside, tmp_path)}
+    # probe against the recipe, seed by seed: differences 0.1, 0.2, 0.0, mean 0.1, sample std 0.1, se 0.1 / sqrt(3),
+    # 2 degrees of freedom: t = sqrt(3), p = 1 - sqrt(3) / sqrt(5) = 0.2254; above in seeds 0 and 1, a tie in seed 2
+    row = rows["probe", "tla-c"]
+    assert row["paired"] == "True" and float(row["difference"]) == pytest.approx(0.1)
+    assert float(row["p"]) == pytest.approx(p_two_sided_df2(math.sqrt(3))) == pytest.approx(0.2254, abs=1e-4)
+    assert float(row["first_above"]) == pytest.approx(2.5 / 3)
+    # the same values with seed 2's layers from elsewhere: independent samples (Welch's p 0.29, not the paired 0.23)
+    assert rows["aside", "tla-c"]["paired"] == "False"
+    assert float(rows["aside", "tla-c"]["p"]) == pytest.approx(welch(values, [0.5, 0.6, 0.7]).p)
+    # two setups over one run's layers are paired with each other too; setups of other seeds are not
+    assert rows["probe", "aside"]["paired"] == "False"  # seed 2: /r/p/tla-c-2 and /r/elsewhere share nothing
+    both = [run("p/again", k, r, [f"/r/p/tla-c-{k}"]) for k, r in enumerate([0.7, 0.7, 0.7])]
+    assert {r["paired"] for r in _compared(probe + both, tmp_path)} == {"True"}
+    fewer = [run("p/fewer", k, r, [f"/r/p/tla-c-{k}"]) for k, r in enumerate([0.7, 0.7])]
+    assert {r["paired"] for r in _compared(recipe + fewer, tmp_path)} == {"False"}
+
+
+def _compared(runs, out):
+    write_report(group(runs), out)
+    return list(csv.DictReader((out / "comparisons.csv").open()))
 
 
 @pytest.mark.parametrize("other", ["unfinished", "not real-time"])

@@ -77,10 +77,17 @@ def test_a_run_started_from_another_runs_weights_continues_that_runs_steps(tmp_p
     assert c.trained_before == 15002 and c.total_curve == ((15002, -140.0), (17502, -130.0), (20002, -120.0))
     assert c.phase_starts == (17502,)
     assert d.trained_before == 0 and d.total_curve == d.curve == ((0, -250.0), (5000, -140.0))
+    # the runs behind each: b and c hold a's slow layer, c b's fast one; d nothing of theirs
+    a = find_runs([tmp_path / "a"])[0]
+    assert b.started_from == {(tmp_path / "a" / "seed1").resolve()} and not d.started_from
+    assert c.started_from == {(tmp_path / "a" / "seed1").resolve(), (tmp_path / "b").resolve()}
+    assert a.shares_layers_with(b) and b.shares_layers_with(a) and b.shares_layers_with(c)
+    assert not d.shares_layers_with(a) and not a.shares_layers_with(d)
     # a damaged run behind the weights is a warning, not a damaged run here
     (tmp_path / "a" / "seed1" / "metrics.csv").write_text("phase,step\n0,x\n")
     with contextlib.redirect_stderr(io.StringIO()) as err:
         assert find_runs([tmp_path / "b"])[0].trained_before == 0
+        assert not find_runs([tmp_path / "b"])[0].shares_layers_with(a)
     assert "where layer 'slow' started from, cannot be read" in err.getvalue()
 
 
