@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import re
 import shutil
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -256,7 +257,8 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
         for ax, env in zip(row, envs, strict=True):
             for s in (s for s in setups if s.env == env):
                 steps, mean, std, lowest, highest = s.curve(whole_run)
-                line, = ax.plot(steps, mean, label=f"{s.method} ({count(len(s.runs), 'seed')})")
+                label = textwrap.fill(f"{s.method} ({count(len(s.runs), 'seed')})", LEGEND_WIDTH)
+                line, = ax.plot(steps, mean, label=label)
                 ax.fill_between(steps, *band(mean, std, lowest, highest), color=line.get_color(), alpha=0.2)
                 for phase, start in enumerate(s.runs[0].phase_starts if whole_run else (), start=1):
                     ax.axvline(start, color=line.get_color(), ls=":", lw=1)
@@ -269,6 +271,11 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
             ax.legend(fontsize="small")
     fig.savefig(out_png, dpi=120)
     plt.close(fig)
+
+
+LEGEND_WIDTH = 44
+"""Characters per line of a setup's name in a figure's legend, which wraps longer names (settings, paths) so that
+the legend stays within its plot."""
 
 
 def _slug(setup: Any) -> str:

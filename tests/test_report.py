@@ -110,6 +110,28 @@ def test_seeds_align_evaluation_by_evaluation_at_their_mean_step():
     assert list(steps) == [0, 5002] and list(mean) == [-800, -300] and list(std) == [100, 100]
 
 
+def test_long_setup_names_wrap_in_the_legend_within_their_plot(tmp_path, monkeypatch):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from layered.report import plot_setup_curves
+
+    drawn = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *args, **kwargs: drawn.append(fig))
+    curve = [(0, -900.0), (5000, -200.0)]
+    long = "p/tla-o layers.slow.defer_reward_scale=[2.0, 1.0] train.order=explicit layers.fast.weights=x/seed0"
+    plot_setup_curves(group([run("p/td3", 0, 0, 0, curve), run(long, 0, 0, 0, curve)]), tmp_path / "curves.png")
+    fig, = drawn
+    ax, = fig.axes
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels[0] == "td3 (1 seed)" and all(len(line) <= 44 for line in labels[1].splitlines())
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()  # (lays the figure out, as saving it would)
+    renderer = canvas.get_renderer()
+    legend, box = ax.get_legend().get_window_extent(renderer), ax.get_window_extent(renderer)
+    assert legend.width < box.width and box.width > fig.bbox.width / 2  # the plot was not squeezed aside
+
+
 def test_grouping_orders_methods_as_the_paper():
     runs = [run("p/tla-c", 0, 0, 0, []), run("p/td3", 0, 0, 0, []), run("p/tla-o", 1, 0, 0, []),
             run("p/tla-c", 1, 0, 0, []), run("p/temporl", 0, 0, 0, [])]
