@@ -16,6 +16,9 @@ from layered.compare import (ACROSS_COLUMNS, COLUMNS, RESAMPLES, across_csv_row,
                              between_phases, between_setups, comparisons_table, csv_row, number)
 
 DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]  # the thresholds of the paper's Fig. 2
+LEGEND_WIDTH = 44
+"""Characters per line of a setup's name in a figure's legend, which wraps longer names (settings, paths) so that
+the legend stays within its plot."""
 
 
 def _activity(row: dict[str, Any], prefix: str, fmt: str = "{:.0%}") -> str:
@@ -271,11 +274,6 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
             ax.legend(fontsize="small")
     fig.savefig(out_png, dpi=120)
     plt.close(fig)
-
-
-LEGEND_WIDTH = 44
-"""Characters per line of a setup's name in a figure's legend, which wraps longer names (settings, paths) so that
-the legend stays within its plot."""
 
 
 def _slug(setup: Any) -> str:
