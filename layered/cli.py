@@ -126,7 +126,8 @@ def _parser() -> argparse.ArgumentParser:
                     "e.g. --set layers.fast.learner.lr=1e-4 after a divergence; in every seed of a group; recorded "
                     "in run.json")
     ev = sub.add_parser("eval", help="evaluate a trained run directory")
-    ev.add_argument("run_dir", type=Path, help="run directory of a trained run")
+    ev.add_argument("run_dir", type=Path, help="run directory of a trained run (of one still training or stopped: "
+                    "the phase under way at its best weights so far)")
     ev.add_argument("--episodes", type=_positive, help="episodes (default: the recipe's eval.episodes)")
     ev.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--weights", choices=["final", "best"],
@@ -325,7 +326,7 @@ def _finished(out: Path) -> int:
 def _eval(args: argparse.Namespace) -> int:
     from layered.run_evals import gallery, open_run, threshold_sweep
 
-    run = open_run(args.run_dir, args.weights, args.plugin)
+    run = open_run(args.run_dir, args.weights, args.plugin, unfinished=True)
     if args.gallery == "":
         args.gallery = run.active[-1]
     if args.gallery is not None and args.gallery not in run.active:

@@ -1,16 +1,18 @@
 """A recipe's learners, one per layer: built new, started from the weights a recipe names, or restored
-from a finished run's checkpoints."""
+from a run's checkpoints."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import torch
 
 from layered.agents import make_aec_env
 from layered.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from layered.learners import LEARNERS, Learner
-from layered.orders import stack_weights
+from layered.orders import phases_of, stack_weights
 from layered.schema import SEED, Recipe, RecipeError
 
 
@@ -32,16 +34,22 @@ def build_learners(recipe: Recipe, device: str | None = None) -> dict[str, Learn
     return learners
 
 
-def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None) -> dict[str, Learner]:
-    """The learners of a finished run, restored from its checkpoints as its last phase ends: the layers that learn
-    in that phase at their `final` or `best` weights (default: the recipe's `train.select`), the others at those
-    their phase handed on (`orders.stack_weights`). They act on the CPU, fastest for one observation at a time,
-    so a run trained on a GPU evaluates anywhere."""
+def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None, phase: int = -1,
+                  best_so_far: Mapping[str, dict[str, Any]] | None = None) -> dict[str, Learner]:
+    """The learners of a run, restored from its checkpoints as phase `phase` (by default its last) ends: the
+    layers that learn in that phase at their `final` or `best` weights (default: the recipe's `train.select`), the
+    others at those their phase handed on (`orders.stack_weights`). Of a phase under way, the layers it learns
+    at their weights in `best_so_far` and only the layers it has present. They act on the CPU, fastest for one
+    observation at a time, so a run trained on a GPU evaluates anywhere."""
     learners = build_learners(recipe, device="cpu")
-    chosen = stack_weights(recipe, weights)
-    for name, learner in learners.items():
+    chosen = stack_weights(recipe, weights, phase)
+    present = recipe.layer_names() if best_so_far is None else phases_of(recipe)[phase].active
+    for name in present:
+        if best_so_far is not None and name in best_so_far:
+            learners[name].load_state_dict(best_so_far[name])
+            continue
         suffix = {"final": ".pt", "best": ".best.pt"}[chosen[name]]
-        learner.load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}{suffix}", name))
+        learners[name].load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}{suffix}", name))
     return learners
 
 

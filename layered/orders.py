@@ -64,10 +64,11 @@ def phases_of(recipe: Recipe) -> list[Phase]:
     return ORDERS.get(recipe.train.order)(recipe.layer_names(), recipe.train.phases or [])
 
 
-def stack_weights(recipe: Recipe, weights: str | None = None) -> dict[str, str]:
-    """Which saved weights, `final` or `best`, make each layer of the stack that the run's last phase ends with:
-    `weights` (default: `train.select`) for the layers that learn in that phase, and for every other layer what
-    its own last phase handed on (`train.select`), the weights the last phase trained over and was evaluated with."""
-    last = phases_of(recipe)[-1].learn
-    return {name: (weights or recipe.train.select) if name in last else recipe.train.select
+def stack_weights(recipe: Recipe, weights: str | None = None, phase: int = -1) -> dict[str, str]:
+    """Which saved weights, `final` or `best`, make each layer of the stack that phase `phase` (by default the
+    run's last) ends with: `weights` (default: `train.select`) for the layers that learn in that phase, and for
+    every other layer what its own last phase handed on (`train.select`), the weights the phase trained over and
+    was evaluated with."""
+    learn = phases_of(recipe)[phase].learn
+    return {name: (weights or recipe.train.select) if name in learn else recipe.train.select
             for name in recipe.layer_names()}

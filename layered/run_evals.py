@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import csv
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,20 +15,22 @@ from layered.plugins import load_plugins
 from layered.recipe import Recipe, load_recipe
 from layered.combiners import COMBINERS
 from layered.report import DEFAULT_SWEEP
+from layered.standing import Standing, standing
 
 SWEEP_FILE = "threshold-sweep.csv"
 
 
 @dataclass(frozen=True)
 class TrainedRun:
-    """A finished run ready to evaluate: its recipe, restored learners, the layers of its last phase and the
-    weights asked for (None: the recipe's `train.select`)."""
+    """A run ready to evaluate: its recipe, restored learners, the layers of its stack and the weights asked for
+    (None: the recipe's `train.select`); of an unfinished run, where it stands (`layered.standing`)."""
 
     path: Path
     recipe: Recipe
     learners: dict[str, Learner]
     active: list[str]
     weights: str | None = None
+    standing: Standing | None = None
 
     @property
     def seed(self) -> int:
@@ -37,25 +40,47 @@ class TrainedRun:
     @property
     def eval_dir(self) -> Path:
         """`eval/`, or `eval/weights-<w>/` for weights asked for by name, so that `layered report` reads only
-        evaluations of the weights the run hands on."""
-        folder = self.path / "eval" / (f"weights-{self.weights}" if self.weights else "")
+        evaluations of the weights the run hands on; an unfinished run's under `eval/unfinished/`."""
+        folder = self.path / "eval" / (self.standing.folder if self.standing is not None else "")
+        folder /= f"weights-{self.weights}" if self.weights else ""
         folder.mkdir(parents=True, exist_ok=True)
         return folder
 
 
-def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | None = None) -> TrainedRun:
+def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | None = None,
+             unfinished: bool = False) -> TrainedRun:
     """The run in `run_dir` with its last phase's `final` or `best` weights (default: its train.select; the
     layers of earlier phases as they were handed on), after importing the plugins it was trained with and
-    `plugins`."""
+    `plugins`. A run that has not finished is refused, or with `unfinished` taken as it stands at its last
+    checkpoint: the stack of the phase under way, its learning layers at their best weights so far."""
     from layered.learner_set import load_learners
     from layered.orders import phases_of
-    from layered.rundir import run_plugins, warn_if_being_written
+    from layered.rundir import RunDirError, run_plugins, warn_if_being_written, writer
 
     load_plugins(run_plugins(run_dir) + list(plugins or []))  # refuses a directory that holds no run
-    warn_if_being_written(run_dir)
     recipe = load_recipe(run_dir / "recipe.toml")
-    return TrainedRun(run_dir, recipe, load_learners(recipe, run_dir, weights), list(phases_of(recipe)[-1].active),
-                      weights)
+    if (run_dir / "results.json").exists():
+        warn_if_being_written(run_dir)
+        return TrainedRun(run_dir, recipe, load_learners(recipe, run_dir, weights), list(phases_of(recipe)[-1].active),
+                          weights)
+    at = standing(run_dir, recipe.train.seed)
+    where = "at its last checkpoint " + (f"phase {at.phase} was at step {at.step}" if at.best
+                                          else f"phase {at.stack_phase} had ended")
+    if not unfinished:
+        raise RunDirError(f"{run_dir} has not finished ({where}); `layered eval {run_dir}` evaluates its best "
+                          "weights so far")
+    if at.best and weights == "final":
+        raise RunDirError(f"{run_dir} has not finished ({where}): its final weights come at the phase's end; "
+                          "without --weights final it is evaluated at its best weights so far")
+    phase = phases_of(recipe)[at.stack_phase]
+    holder = writer(run_dir)
+    state = f"is being trained by {holder}" if holder else "has stopped"
+    learning = ", ".join(repr(name) for name in phase.learn)
+    chosen = (f"{learning} at the best weights so far (evaluated at step {at.best_step}: return "
+              f"{at.best_return:.1f})" if at.best else "every layer as that phase handed it on")
+    print(f"layered: note: {run_dir} {state}: {where}; evaluating {chosen}", file=sys.stderr)
+    return TrainedRun(run_dir, recipe, load_learners(recipe, run_dir, weights, at.stack_phase, at.best),
+                      list(phase.active), weights, at)
 
 
 def has_threshold(recipe: Recipe) -> bool:

@@ -22,6 +22,8 @@ from layered.summary import PHASES_FILE
 
 LOCK_FILE = ".lock"
 _HELD: set[Path] = set()  # the run directories this process writes
+RUN_CHECKPOINT = Path("checkpoints") / "run.pt"
+"""A single run's training checkpoint, in its directory (the one before it beside it, `checkpoint.previous`)."""
 RUN_FILES = ("recipe.toml", "run.json", "metrics.csv", "episodes.csv", PHASES_FILE, "results.json", "results.md",
              "curves.png", "checkpoints", "eval", "train.log", LOCK_FILE)
 
@@ -48,7 +50,7 @@ def steps_option(max_steps: int | None) -> str:
 
 def has_progress(run_dir: Path) -> bool:
     """Whether the directory holds a run with something to lose: a checkpoint or results."""
-    run_state = run_dir / "checkpoints" / "run.pt"
+    run_state = run_dir / RUN_CHECKPOINT
     return any(p.exists() for p in (run_dir / "results.json", run_state, previous(run_state)))
 
 

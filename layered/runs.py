@@ -25,6 +25,7 @@ from layered.results import EPISODE_FIELDS, metrics_fields, write_results
 from layered.learners import Learner
 from layered.orders import phases_of
 from layered.rundir import (
+    RUN_CHECKPOINT,
     RunDirError,
     RunInfo,
     check_new_run_dir,
@@ -113,7 +114,7 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
     """`train`, from the run directory on, while this process holds its lock."""
     max_steps = info.max_steps
     prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # so that a run killed early resumes
-    checkpoint = out / "checkpoints" / "run.pt"
+    checkpoint = out / RUN_CHECKPOINT
     previous = changed_from(out, change) if resume else None
     journal = ReplayJournal(replay_folder(checkpoint))
     try:
