@@ -86,7 +86,7 @@ RECIPE: dict[str, Any] = {
     "eval": {"episodes": 1, "fresh_episodes": 0},
 }
 # a progress line: "<phase>: step S/T, eval return R ± D, N steps/s[, warm-up][, about T left]"
-RATE = re.compile(r"^(.*): step \d+/\d+, eval return [^,]*, (\d+) steps/s(, warm-up)?(?:, about .* left)?$",
+RATE = re.compile(r"^(.*): step \d+/\d+, eval return [^,]*, (\d+) steps/s(, warm-up)?(?:, about .* left.*)?$",
                   re.MULTILINE)
 ROOT = Path(__file__).resolve().parent.parent
 REALTIME_TLA = ROOT / "recipes/hopper/tla-realtime.toml"

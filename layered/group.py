@@ -60,10 +60,9 @@ from layered.logs import CsvLog
 from layered.metrics import Evaluation
 from layered.orders import Phase, phases_of
 from layered.pending_losses import PendingLosses
-from layered.progress import Progress
+from layered.progress import Progress, count
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.replay_journal import ReplayJournal, replay_folder, replays_of
-from layered.report import count
 from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_finished_phases, write_results
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
 from layered.rules import Rules
@@ -349,7 +348,7 @@ class Group:
         losses = {self.names[i]: PendingLosses() for i in learn}
         every = np.ones(self.rows, bool)
         label = f"phase {p}: {'+'.join(phase.learn)} ({count(self.rows, 'seed')})"
-        bar = Progress(label, budget, loop.step, self.progress, self.rows)
+        bar = Progress(label, budget, loop.step, self.progress, self.rows, len(phases_of(self.recipe)) - 1 - p)
 
         def act(i: int, seen: np.ndarray, deciding: np.ndarray) -> np.ndarray:
             full = all_rows(seen, deciding)

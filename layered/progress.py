@@ -12,10 +12,11 @@ from tqdm import tqdm
 
 class Progress:
     """Steps of one phase, and each evaluation's return. `seeds`: how many seeds take each step together
-    (a group's); its lines give the rate per seed and in all."""
+    (a group's); its lines give the rate per seed and in all. `later`: the run's phases after this one, whose
+    time its estimate leaves out (they run at rates of their own)."""
 
-    def __init__(self, label: str, total: int, initial: int, enabled: bool, seeds: int = 1) -> None:
-        self.label, self.total, self.seeds = label, total, seeds
+    def __init__(self, label: str, total: int, initial: int, enabled: bool, seeds: int = 1, later: int = 0) -> None:
+        self.label, self.total, self.seeds, self.later = label, total, seeds, later
         self.lines = enabled and not sys.stderr.isatty()
         self.bar = tqdm(total=total, initial=initial, desc=label, unit="step", disable=not enabled or self.lines,
                         dynamic_ncols=True, mininterval=1.0)
@@ -37,7 +38,8 @@ class Progress:
         now, (then, before) = time.perf_counter(), self._since
         left = self.total - step if learned and self._learned else None
         print(f"{self.label}: step {step}/{self.total}, eval return {mean:.1f} ± {std:.1f}"
-              f"{pace(step - before, now - then, left, self.seeds)}{'' if learned or step == before else ', warm-up'}",
+              f"{pace(step - before, now - then, left, self.seeds, self.later)}"
+              f"{'' if learned or step == before else ', warm-up'}",
               file=sys.stderr, flush=True)
         self._since, self._learned = (now, step), learned
 
@@ -45,15 +47,21 @@ class Progress:
         self.bar.close()
 
 
-def pace(steps: int, seconds: float, left: int | None, seeds: int = 1) -> str:
+def pace(steps: int, seconds: float, left: int | None, seeds: int = 1, later: int = 0) -> str:
     """", R steps/s" for `steps` taken in `seconds` (by each of `seeds` seeds: ", R steps/s per seed (R x seeds
     in all)"), and ", about T left" for `left` more steps at that rate (nothing for no steps: a phase's first
-    line; no time left for `left` None or 0)."""
+    line; no time left for `left` None or 0), "in this phase, then N more" where `later` phases follow."""
     if steps <= 0 or seconds <= 0:
         return ""
     rate = steps / seconds
     each = f"{rate:.0f} steps/s" + (f" per seed ({rate * seeds:.0f} in all)" if seeds > 1 else "")
-    return f", {each}" + (f", about {duration(left / rate)} left" if left else "")
+    after = f" in this phase, then {count(later, 'more phase')}" if later else ""
+    return f", {each}" + (f", about {duration(left / rate)} left{after}" if left else "")
+
+
+def count(n: int, noun: str) -> str:
+    """`1 seed`, `3 seeds`."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def duration(seconds: float) -> str:

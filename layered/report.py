@@ -14,6 +14,7 @@ import numpy as np
 
 from layered.compare import (ACROSS_COLUMNS, COLUMNS, RESAMPLES, across_csv_row, across_envs, across_table, adjusted,
                              between_phases, between_setups, comparisons_table, csv_row, number)
+from layered.progress import count
 
 DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]  # the thresholds of the paper's Fig. 2
 LEGEND_WIDTH = 44
@@ -56,11 +57,6 @@ def results_table(rows: Sequence[dict[str, Any]]) -> str:
             f"| {100 * r['fresh_best_repetition']:.1f}% |" for r in fresh
         ]
     return "\n".join(lines)
-
-
-def count(n: int, noun: str) -> str:
-    """`1 seed`, `3 seeds`."""
-    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def pyplot() -> Any:

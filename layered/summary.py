@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from layered.report import count
+from layered.progress import count
 
 PHASES_FILE = "phases.json"  # an unfinished run's finished phases, as results.json will hold them
 

@@ -142,7 +142,8 @@ def run_phase(run: Training, state: LoopState, phase: Phase, budget: int) -> Pha
     recipe = run.recipe
     env = make_aec_env(recipe, active=list(phase.active))
     evaluator = open_run_evaluator(recipe, phase.active, recipe.eval.episodes)
-    bar = Progress(f"phase {state.phase}: {'+'.join(phase.learn)}", budget, state.step, run.progress)
+    bar = Progress(f"phase {state.phase}: {'+'.join(phase.learn)}", budget, state.step, run.progress,
+                   later=len(phases_of(recipe)) - 1 - state.phase)
     try:
         if not state.curve:
             _evaluate(run, state, phase, evaluator, bar)

@@ -23,6 +23,8 @@ def test_the_pace_is_the_rate_since_the_last_line_and_the_time_left_at_it():
     assert pace(0, 0.0, 100_000) == ""  # its first
     # a group of 10 seeds, each taking the 5000 steps: 62.5 per seed, 625 in all; the time left is the seeds'
     assert pace(5000, 80.0, 70_000, seeds=10) == ", 62 steps/s per seed (625 in all), about 19 min left"
+    assert pace(5000, 80.0, 70_000, later=1) == ", 62 steps/s, about 19 min left in this phase, then 1 more phase"
+    assert pace(5000, 80.0, 70_000, later=2).endswith("left in this phase, then 2 more phases")
 
 
 def test_a_phase_without_a_terminal_prints_one_line_per_evaluation(capsys, monkeypatch):
