@@ -26,6 +26,7 @@ os.environ["OMP_NUM_THREADS"] = "1"
 import layered.runs as runs  # noqa: E402
 from layered.checkpoint import load_checkpoint  # noqa: E402
 import layered.trainer as trainer  # noqa: E402
+from layered.group import Group  # noqa: E402
 from layered import Recipe, load_recipe  # noqa: E402
 
 
@@ -180,6 +181,19 @@ def stop_at_episode_end(monkeypatch, k: int) -> None:
         original(run, env, state)
 
     monkeypatch.setattr(trainer, "_end_episode", end_episode)
+
+
+def stop_at(monkeypatch, moments):
+    """Ask the group to stop (as SIGINT would) after step `step` of phase `phase`, for each (phase, step)."""
+    original, left = Group._due, list(moments)
+
+    def due(self, phase, loop, *args):
+        if left and (self.seeds[0].state.phase, loop.step) == left[0]:
+            left.pop(0)
+            self.stop.requested = "SIGINT"
+        original(self, phase, loop, *args)
+
+    monkeypatch.setattr(Group, "_due", due)
 
 
 class RememberingEnv(gym.Env):

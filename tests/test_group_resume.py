@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import assert_same_run, between_checkpoints, kill_when
+from conftest import assert_same_run, between_checkpoints, kill_when, stop_at
 
 from layered.rundir import RunDirError
 from layered.cli import main
@@ -27,19 +27,6 @@ from layered.replay_journal import replay_folder
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=40", "eval.every=150", "eval.episodes=1",
         "eval.fresh_episodes=1"]
-
-
-def stop_at(monkeypatch, moments):
-    """Ask the group to stop (as SIGINT would) after step `step` of phase `phase`, for each (phase, step)."""
-    original, left = Group._due, list(moments)
-
-    def due(self, phase, loop, *args):
-        if left and (self.seeds[0].state.phase, loop.step) == left[0]:
-            left.pop(0)
-            self.stop.requested = "SIGINT"
-        original(self, phase, loop, *args)
-
-    monkeypatch.setattr(Group, "_due", due)
 
 
 def assert_same_group(a: Path, b: Path, seeds) -> None:

@@ -10,14 +10,13 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import pytest
 
-import layered.group as group_module
 from layered import load_recipe
 from layered.cli import main
 from layered.report import _steps_axis
 from layered.summary import Run, Setup, find_runs, group
 from layered.runs import train
 
-from conftest import stop_at_episode_end, train_until_stopped
+from conftest import stop_at, stop_at_episode_end, train_until_stopped
 
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
@@ -269,13 +268,7 @@ def test_a_run_stopped_in_its_second_phase_reports_its_first_phase_results(seeds
     run = out / "seed0" if seeds else out
 
     def stopped_at(step, command):  # the group stops after the second phase's `step`, a single run at an episode end
-        def stop_at(self, phase, loop, *args):
-            if self.seeds[0].state.phase == 1 and loop.step == step:
-                self.stop.requested = "SIGINT"
-            return due(self, phase, loop, *args)
-
-        due = group_module.Group._due
-        monkeypatch.setattr(group_module.Group, "_due", stop_at)
+        stop_at(monkeypatch, [(1, step)])
         stop_at_episode_end(monkeypatch, 1 if command[0] == "resume" else 3)
         assert main(command) == 130
         monkeypatch.undo()

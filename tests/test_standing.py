@@ -7,8 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import train_until_stopped
-from test_group_resume import stop_at
+from conftest import stop_at, train_until_stopped
 
 import layered.trainer as trainer_module
 from layered import load_recipe
