@@ -20,6 +20,7 @@ from layered.group_state import GROUP_CHECKPOINT, group_dir
 from layered.rundir import RUN_CHECKPOINT, RunDirError
 from layered.runstate import LoopState
 
+
 @dataclass(frozen=True)
 class Standing:
     """An unfinished run at its last checkpoint: phase `phase` at step `step`, and its learning layers' weights
