@@ -124,12 +124,13 @@ def _verified_body(path: Path, content: bytes) -> bytes:
     return body
 
 
-def load_latest(path: Path, layer: str, check: Callable[[dict[str, Any]], None] | None = None
-                ) -> dict[str, Any] | None:
+def load_latest(path: Path, layer: str, check: Callable[[dict[str, Any]], None] | None = None,
+                tidy: bool = True) -> dict[str, Any] | None:
     """The newest readable state of `path` or, failing that, of `previous(path)`; None if neither
-    exists. Unfinished temporary files of an interrupted write are removed. A state that `check`
-    refuses (raising CheckpointError: what it names elsewhere is missing or damaged) counts as unreadable."""
-    for stale in path.parent.glob(f".{path.name}.*"):
+    exists. With `tidy` (the run's writer, resuming), unfinished temporary files of an interrupted write are
+    removed; a reader beside a writer at work leaves them. A state that `check` refuses (raising
+    CheckpointError: what it names elsewhere is missing or damaged) counts as unreadable."""
+    for stale in path.parent.glob(f".{path.name}.*") if tidy else ():
         stale.unlink(missing_ok=True)
     problems = []
     for candidate in (path, previous(path)):

@@ -3,19 +3,18 @@ the weights of that phase's learning layers at their best evaluation so far, rea
 its group's. What `layered eval` evaluates before a run has finished.
 
 A reader never changes a file here: the run's writer may be at work beside it, so a checkpoint that cannot be
-read is passed over for the previous one, never removed (`layered.checkpoint.load_latest` is the writer's).
+read is passed over for the previous one, and the writer's unfinished files are left alone (`tidy=False`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from layered.attachments import Attachments
+from layered.attachments import Attachment, Attachments, check_attachments
 from layered.best_journal import BEST, best_folder
-from layered.checkpoint import CheckpointError, load_checkpoint, previous
+from layered.checkpoint import load_latest
 from layered.group_state import GROUP_CHECKPOINT, group_dir
 from layered.rundir import RUN_CHECKPOINT, RunDirError
 from layered.runstate import LoopState
@@ -48,39 +47,31 @@ class Standing:
 
 def standing(run_dir: Path, seed: int) -> Standing:
     """Where the unfinished run in `run_dir` (of recipe seed `seed`) stands, from its newest readable checkpoint
-    (a single run's `checkpoints/run.pt`, or its group's `group.pt` and best weights)."""
+    (a single run's `checkpoints/run.pt`, or its group's `group.pt` and the seed's best weights)."""
+    at = None
     directory = group_dir(run_dir)
     if directory is None:
-        at = _newest(run_dir / RUN_CHECKPOINT, "run",
-                     lambda saved: _at(LoopState.from_json(saved["loop"]), saved["best"]))
+        saved = load_latest(run_dir / RUN_CHECKPOINT, "run", tidy=False)
+        if saved is not None:
+            at = _at(LoopState.from_json(saved["loop"]), saved["best"])
     else:
-        path = directory / GROUP_CHECKPOINT
+        files = Attachments(best_folder(directory / GROUP_CHECKPOINT))
 
-        def of_seed(saved: dict[str, Any]) -> Standing:
-            k = saved["seeds"].index(seed)
-            attachment = saved["best"]["files"][k]
-            best = {} if attachment is None else Attachments(best_folder(path)).load(attachment, BEST)
-            return _at(LoopState.from_json(saved["states"][k]), best)
+        def best_file(saved: dict[str, Any]) -> Attachment | None:
+            return saved["best"]["files"][saved["seeds"].index(seed)]
 
-        at = _newest(path, "group", of_seed)
+        def check(saved: dict[str, Any]) -> None:  # (a checkpoint whose file of this seed is gone counts as unreadable)
+            if (attachment := best_file(saved)) is not None:
+                check_attachments(files.folder, [attachment], BEST)
+
+        saved = load_latest(directory / GROUP_CHECKPOINT, "group", check, tidy=False)
+        if saved is not None:
+            attachment = best_file(saved)
+            at = _at(LoopState.from_json(saved["states"][saved["seeds"].index(seed)]),
+                     {} if attachment is None else files.load(attachment, BEST))
     if at is None or at.stack_phase < 0:
         raise RunDirError(f"{run_dir} has not finished and has no checkpoint yet: evaluate it after its first")
     return at
-
-
-def _newest(path: Path, kind: str, read: Callable[[dict[str, Any]], Standing]) -> Standing | None:
-    """`read` of the checkpoint at `path`, or of the one before where that one cannot be read whole; None where
-    there is neither."""
-    problems = []
-    for candidate in (path, previous(path)):
-        if candidate.exists():
-            try:
-                return read(load_checkpoint(candidate, kind))
-            except CheckpointError as e:
-                problems.append(str(e))
-    if problems:
-        raise CheckpointError("; ".join(problems))
-    return None
 
 
 def _at(state: LoopState, best: dict[str, dict[str, Any]]) -> Standing:
