@@ -132,7 +132,8 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--weights", choices=["final", "best"],
                     help="the last phase's final weights or those of its best evaluation (default: the recipe's "
-                    "train.select; layers of earlier phases as they were handed on)")
+                    "train.select; layers of earlier phases as they were handed on); of a run not finished, final "
+                    "takes the phase under way's weights at its last checkpoint")
     ev.add_argument("--threads", type=_positive, help="torch threads")
     _plugin_option(ev, "besides those the run was trained with")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")

@@ -17,7 +17,7 @@ and a group checkpointed at any step and resumed (`layered.group_state`) writes 
 from __future__ import annotations
 
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 import functools
@@ -264,6 +264,17 @@ def resume_group(directory: Path, max_steps: int | None = None, progress: bool =
     changed = [changed_recipe(out, settings, where=directory) for out in outs]
     return train_group([recipe for recipe, _ in changed], outs, info.label, info.max_steps, progress, info.plugins,
                        resume=True, changes=[change for _, change in changed])
+
+
+def seed_weights(recipe: Recipe, states: Mapping[str, dict[str, Any]], row: int,
+                 rows: int) -> dict[str, dict[str, Any]]:
+    """Seed row `row`'s weights (single learners' `state_dict`s) in layers' learner states `states` of a group of
+    `rows` seeds of `recipe`, as its checkpoint holds them (what `resume_state` returned)."""
+    singles = build_learners(recipe, device="cpu")
+    groups = _stack_learners([recipe] * rows, [singles] * rows)  # (the seeds' own starting weights do not matter)
+    for name, state in states.items():
+        groups[name].load_resume_state(state)
+    return {name: groups[name].seed_state_dict(row) for name in states}
 
 
 def _stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]) -> dict[str, GroupLearner]:

@@ -35,22 +35,31 @@ def build_learners(recipe: Recipe, device: str | None = None) -> dict[str, Learn
 
 
 def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None, phase: int = -1,
-                  best_so_far: Mapping[str, dict[str, Any]] | None = None) -> dict[str, Learner]:
+                  under_way: Mapping[str, dict[str, Any]] | None = None) -> dict[str, Learner]:
     """The learners of a run, restored from its checkpoints as phase `phase` (by default its last) ends: the
     layers that learn in that phase at their `final` or `best` weights (default: the recipe's `train.select`), the
     others at those their phase handed on (`orders.stack_weights`). Of a phase under way, the layers it learns
-    at their weights in `best_so_far` and only the layers it has present. They act on the CPU, fastest for one
+    at their weights in `under_way` and only the layers it has present. They act on the CPU, fastest for one
     observation at a time, so a run trained on a GPU evaluates anywhere."""
     learners = build_learners(recipe, device="cpu")
     chosen = stack_weights(recipe, weights, phase)
-    present = recipe.layer_names() if best_so_far is None else phases_of(recipe)[phase].active
+    present = recipe.layer_names() if under_way is None else phases_of(recipe)[phase].active
     for name in present:
-        if best_so_far is not None and name in best_so_far:
-            learners[name].load_state_dict(best_so_far[name])
+        if under_way is not None and name in under_way:
+            learners[name].load_state_dict(under_way[name])
             continue
         suffix = {"final": ".pt", "best": ".best.pt"}[chosen[name]]
         learners[name].load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}{suffix}", name))
     return learners
+
+
+def resumed_weights(recipe: Recipe, states: Mapping[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The weights (`state_dict`s) that layers' learner states `states`, as a run's checkpoint holds them (what
+    `resume_state` returned), hold."""
+    learners = build_learners(recipe, device="cpu")
+    for name, state in states.items():
+        learners[name].load_resume_state(state)
+    return {name: learners[name].state_dict() for name in states}
 
 
 def start_from_weights(recipe: Recipe, learners: dict[str, Learner]) -> None:

@@ -41,7 +41,8 @@ class TrainedRun:
     def eval_dir(self) -> Path:
         """`eval/`, or `eval/weights-<w>/` for weights asked for by name, so that `layered report` reads only
         evaluations of the weights the run hands on; an unfinished run's under `eval/unfinished/`."""
-        folder = self.path / "eval" / (self.standing.folder if self.standing is not None else "")
+        latest = self.weights == "final"
+        folder = self.path / "eval" / (self.standing.folder(latest) if self.standing is not None else "")
         folder /= f"weights-{self.weights}" if self.weights else ""
         folder.mkdir(parents=True, exist_ok=True)
         return folder
@@ -52,7 +53,8 @@ def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | Non
     """The run in `run_dir` with its last phase's `final` or `best` weights (default: its train.select; the
     layers of earlier phases as they were handed on), after importing the plugins it was trained with and
     `plugins`. A run that has not finished is refused, or with `unfinished` taken as it stands at its last
-    checkpoint: the stack of the phase under way, its learning layers at their best weights so far."""
+    checkpoint: the stack of the phase under way, its learning layers at their best weights so far (`final`: at
+    their weights at that checkpoint)."""
     from layered.learner_set import load_learners
     from layered.orders import phases_of
     from layered.rundir import RunDirError, run_plugins, warn_if_being_written, writer
@@ -69,18 +71,30 @@ def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | Non
     if not unfinished:
         raise RunDirError(f"{run_dir} has not finished ({where}); `layered eval {run_dir}` evaluates its best "
                           "weights so far")
-    if at.best and weights == "final":
-        raise RunDirError(f"{run_dir} has not finished ({where}): its final weights come at the phase's end; "
-                          "without --weights final it is evaluated at its best weights so far")
     phase = phases_of(recipe)[at.stack_phase]
     holder = writer(run_dir)
     state = f"is being trained by {holder}" if holder else "has stopped"
     learning = ", ".join(repr(name) for name in phase.learn)
-    chosen = (f"{learning} at the best weights so far (evaluated at step {at.best_step}: return "
-              f"{at.best_return:.1f})" if at.best else "every layer as that phase handed it on")
+    if not at.best:
+        chosen, under_way = "every layer as that phase handed it on", {}
+    elif weights == "final":
+        chosen, under_way = f"{learning} at its weights there", _latest_weights(recipe, at)
+    else:
+        chosen, under_way = (f"{learning} at the best weights so far (evaluated at step {at.best_step}: return "
+                             f"{at.best_return:.1f})"), at.best
     print(f"layered: note: {run_dir} {state}: {where}; evaluating {chosen}", file=sys.stderr)
-    return TrainedRun(run_dir, recipe, load_learners(recipe, run_dir, weights, at.stack_phase, at.best),
+    return TrainedRun(run_dir, recipe, load_learners(recipe, run_dir, weights, at.stack_phase, under_way),
                       list(phase.active), weights, at)
+
+
+def _latest_weights(recipe: Recipe, at: Standing) -> dict[str, dict[str, Any]]:
+    """The weights of the learning layers of an unfinished run (or group seed) at its last checkpoint."""
+    from layered.group import seed_weights
+    from layered.learner_set import resumed_weights
+
+    if at.row is None:
+        return resumed_weights(recipe, at.latest)
+    return seed_weights(recipe, at.latest, at.row, at.rows)
 
 
 def has_threshold(recipe: Recipe) -> bool:

@@ -1,6 +1,7 @@
 """An unfinished run evaluated as it stands: the stack of the phase under way at its last checkpoint, its learning
-layers at their best weights so far, read from the run's or the group's checkpoint without touching the files its
-writer may be at work on; export, deploy and final weights refused until the phase ends."""
+layers at their best weights so far (or, `--weights final`, at their weights there), read from the run's or the
+group's checkpoint without touching the files its writer may be at work on; export and deploy refused until the
+run ends."""
 
 import json
 from pathlib import Path
@@ -55,8 +56,17 @@ def test_a_stopped_run_is_evaluated_at_its_best_weights_so_far(tmp_path, monkeyp
     assert json.loads(written.read_text())["active"] == present
     assert not (out / "eval" / "threshold-recipe-episodes-2.json").exists()  # apart from what a report reads
 
-    assert main(["eval", str(out), "--weights", "final"]) == 2
-    assert "its final weights come at the phase's end" in capsys.readouterr().err
+    latest = open_run(out, "final", unfinished=True)  # the learning layer as the checkpoint holds it
+    assert same_weights(latest.learners[present[-1]], saved["learners"][present[-1]]["policy"])
+    assert not same_weights(latest.learners[present[-1]], saved["best"][present[-1]])
+    if phase == 1:
+        assert same_weights(latest.learners["slow"], load_checkpoint(out / "checkpoints/slow.best.pt", "slow"))
+    capsys.readouterr()
+    assert main(["eval", str(out), "--episodes", "1", "--weights", "final"]) == 0
+    assert f"phase {phase} was at step {loop['step']}; evaluating '{present[-1]}' at its weights there" in \
+        capsys.readouterr().err
+    assert (out / f"eval/unfinished/phase{phase}-step-{loop['step']}/weights-final/"
+            "threshold-recipe-episodes-1.json").exists()
     assert main(["export", str(out), "--format", "torchscript"]) == 2
     assert f"{out} has not finished (at its last checkpoint phase {phase} was at step" in capsys.readouterr().err
     assert not (out / "export-torchscript").exists()
@@ -75,7 +85,8 @@ def test_a_run_stopped_between_phases_is_evaluated_as_the_phase_before_ended(tmp
         train(load_recipe(ROOT / "recipes/pendulum/tla-c.toml", TINY), out, max_steps=300, progress=False)
     monkeypatch.undo()
     at = standing(out, 0)
-    assert (at.phase, at.best, at.stack_phase, at.folder) == (1, {}, 0, "unfinished/phase0-end")
+    assert (at.phase, at.best, at.stack_phase, at.folder(), at.folder(latest=True)) == (
+        1, {}, 0, "unfinished/phase0-end", "unfinished/phase0-end")
     run = open_run(out, unfinished=True)
     assert run.active == ["slow"]
     assert same_weights(run.learners["slow"], load_checkpoint(out / "checkpoints/slow.best.pt", "slow"))
@@ -87,7 +98,7 @@ def test_a_run_stopped_between_phases_is_evaluated_as_the_phase_before_ended(tmp
 
 def test_a_group_seed_is_read_from_the_groups_checkpoint_and_nothing_there_is_touched(tmp_path, monkeypatch, capsys):
     out = tmp_path / "group"
-    stop_at(monkeypatch, [(1, 50)])
+    stop_at(monkeypatch, [(1, 120)])
     assert main(["train", str(ROOT / "recipes/pendulum/tla-c.toml"), "--seeds", "0,3", "--steps", "300", *TINY,
                  "train.checkpoint_every=100", "--out", str(out)]) == 130
     monkeypatch.undo()
@@ -99,13 +110,23 @@ def test_a_group_seed_is_read_from_the_groups_checkpoint_and_nothing_there_is_to
     state = json.loads(saved["states"][1])
     at = standing(out / "seed3", 3)
     best = load_checkpoint(out / "best" / saved["best"]["files"][1]["file"], "best weights")
-    assert (at.phase, at.step, at.stack_phase) == (1, 50, 1) == (state["phase"], state["step"], 1)
+    assert (at.phase, at.step, at.stack_phase) == (1, 120, 1) == (state["phase"], state["step"], 1)
     assert at.best_step == max(state["curve"], key=lambda point: point[1]["return_mean"])[0]
     run = open_run(out / "seed3", unfinished=True)
     assert same_weights(run.learners["fast"], best["fast"])
     assert same_weights(run.learners["slow"], load_checkpoint(out / "seed3/checkpoints/slow.best.pt", "slow"))
     assert main(["eval", str(out / "seed3"), "--episodes", "1"]) == 0
-    assert "seed3 has stopped: at its last checkpoint phase 1 was at step 50" in capsys.readouterr().err
+    assert "seed3 has stopped: at its last checkpoint phase 1 was at step 120" in capsys.readouterr().err
+    latest = open_run(out / "seed3", "final", unfinished=True)  # seed 3 is the group's second row: [1]
+    stacked = saved["learners"]["fast"]["nets"]["actor"]  # [K, in, out] weights, [K, 1, out] biases, by layer
+    held = latest.learners["fast"].state_dict()["actor"]
+    for j, layer in enumerate((0, 2, 4)):  # (an nn.Sequential of linear layers and ReLUs)
+        assert torch.equal(held[f"net.{layer}.weight"], stacked[f"stacked.{2 * j}"][1].T)
+        assert torch.equal(held[f"net.{layer}.bias"], stacked[f"stacked.{2 * j + 1}"][1].reshape(-1))
+    assert not same_weights(latest.learners["fast"], best["fast"])
+    assert same_weights(latest.learners["slow"], load_checkpoint(out / "seed3/checkpoints/slow.best.pt", "slow"))
+    assert main(["eval", str(out / "seed3"), "--episodes", "1", "--weights", "final"]) == 0
+    assert (out / "seed3/eval/unfinished/phase1-step-120/weights-final/threshold-recipe-episodes-1.json").exists()
     assert writing.read_bytes() == b"partial"
     assert sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file() and "eval" not in p.parts) == files
 
