@@ -16,6 +16,8 @@ from layered.interrupt import Stopped
 from layered.runs import train
 from layered.checkpoint import load_checkpoint
 from layered.cli import main
+from layered.group import STACKED, seed_weights
+from layered.learner_set import build_learners
 from layered.rundir import RUN_CHECKPOINT, RunDirError, prepare_run_dir, RunInfo
 from layered.run_evals import open_run
 from layered.standing import standing
@@ -138,3 +140,28 @@ def test_a_run_without_a_checkpoint_has_nothing_to_evaluate(tmp_path, capsys):
         open_run(tmp_path, unfinished=True)
     assert main(["eval", str(tmp_path)]) == 2
     assert "no checkpoint yet" in capsys.readouterr().err
+
+
+
+def tensors(state, path=""):
+    """Every tensor in a nested learner state, by its path of keys, but generator states (a group has its own)."""
+    if isinstance(state, torch.Tensor):
+        return {} if "rng" in path else {path: state}
+    items = state.items() if isinstance(state, dict) else enumerate(state) if isinstance(state, list | tuple) else []
+    return {key: value for k, v in items for key, value in tensors(v, f"{path}/{k}").items()}
+
+
+@pytest.mark.parametrize("name, kinds", [("td3", {"td3"}), ("temporl", {"temporl"}),
+                                         ("tla-joint", {"td3-gate", "td3"})])
+def test_a_seeds_weights_are_taken_out_of_its_groups_learner_states(name, kinds):
+    recipes = [load_recipe(ROOT / f"recipes/pendulum/{name}.toml", ["learner.hidden=[8, 8]", f"train.seed={k}"])
+               for k in range(3)]
+    assert {recipes[0].learner_config(i).kind for i in range(len(recipes[0].layers))} == kinds  # every kind of group
+    singles = [build_learners(recipe, device="cpu") for recipe in recipes]  # (each seed starts from weights of its own)
+    states = {layer: STACKED[recipes[0].learner_config(i).kind]([seed[layer] for seed in singles]).resume_state()
+              for i, layer in enumerate(recipes[0].layer_names())}
+    taken = seed_weights(recipes[0], states, 1, 3)
+    for layer, weights in taken.items():
+        own = tensors(singles[1][layer].state_dict())
+        assert tensors(weights).keys() == own.keys()
+        assert all(torch.equal(value, own[key]) for key, value in tensors(weights).items()), layer
