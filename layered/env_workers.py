@@ -219,7 +219,6 @@ class EnvWorkers(Envs):
             raise EnvWorkerError(f"{self.env_id}: {failure}")
         return answers
 
-
     def _lost(self, w: int) -> str:
         first, last = self._slices[w].start, self._slices[w].stop - 1
         rows = f"rows {first}-{last}" if last > first else f"row {first}"
