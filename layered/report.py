@@ -241,6 +241,51 @@ def write_seeds_csv(setups: Sequence[Any], path: Path) -> None:
                              *(p.get(k, "") for k in keys)])
 
 
+CURVE_FRACTIONS = (0.1, 0.25, 0.5, 0.75, 1.0)
+"""Where along a setup's last-phase curve the report's table of it reads the return: a tenth of it ... its end."""
+
+
+def curve_points(setup: Any, fractions: Sequence[float] = CURVE_FRACTIONS) -> list[tuple[float, float, float]]:
+    """(step, mean, std over seeds) of a setup's evaluation return at the evaluations of its last-phase curve
+    nearest to each of `fractions` of that curve's last step."""
+    steps, mean, std, _, _ = setup.curve()
+    picks = [int(np.argmin(np.abs(steps - fraction * steps[-1]))) for fraction in fractions]
+    return [(float(steps[i]), float(mean[i]), float(std[i])) for i in picks]
+
+
+def _steps(n: float) -> str:
+    """A number of environment steps as the curves' axes write it: 25k, 1.5M."""
+    for unit, size in (("M", 1e6), ("k", 1e3)):
+        if n >= size:
+            return f"{n / size:.3g}{unit}"
+    return f"{n:.0f}"
+
+
+def curve_table(setups: Sequence[Any]) -> str:
+    """The learning curves in numbers: each setup's evaluation return, mean ± std over seeds, along its last phase
+    (`CURVE_FRACTIONS`, each cell with the step it was read at)."""
+    head = ["environment", "setup", *(f"{fraction:.0%}" for fraction in CURVE_FRACTIONS)]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for s in setups:
+        cells = [f"{_spread(mean, std, len(s.runs), '{:.1f}')} at {_steps(step)}"
+                 for step, mean, std in curve_points(s)]
+        lines.append("| " + " | ".join([s.env, s.method, *cells]) + " |")
+    return "\n".join(lines)
+
+
+def write_curves_csv(setups: Sequence[Any], path: Path) -> None:
+    """Every point of every setup's learning curves, as the figure draws them: over the last phase and over the
+    whole run, evaluation by evaluation, mean, std, lowest and highest over seeds."""
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["env", "label", "method", "seeds", "curve", "step", "return_mean", "return_std",
+                         "return_lowest", "return_highest"])
+        for s in setups:
+            for whole_run, view in ((False, "last phase"), (True, "whole run")):
+                for point in zip(*s.curve(whole_run), strict=True):
+                    writer.writerow([s.env, s.label, s.method, len(s.runs), view, *(float(v) for v in point)])
+
+
 def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
     """Learning curves per environment, mean over seeds with a ±1 std band (clipped to the lowest and
     highest seed): over the last phase
@@ -312,7 +357,8 @@ def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str
 
 def write_report(setups: Sequence[Any], out: Path) -> str:
     """Tables 1-3 as Markdown (report.md) and CSV (summary.csv), the setups and phases compared over seeds
-    (comparisons.csv) and the methods over environments (across-envs.csv), and learning curves (curves.png)."""
+    (comparisons.csv) and the methods over environments (across-envs.csv), and learning curves (curves.png, and
+    their points in curves.csv)."""
     out.mkdir(parents=True, exist_ok=True)
     turn = [s for s in setups if not s.realtime]
     realtime = [s for s in setups if s.realtime]
@@ -366,7 +412,11 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
               "is a row of `seeds.csv`.", ""]
     for s in setups:
         parts += [f"### {s.env}, {s.label}", "", per_seed_table(s), ""]
-    parts += ["## Learning curves", "", "![learning curves](curves.png)", ""]
+    parts += ["## Learning curves", "", "![learning curves](curves.png)", "",
+              "In numbers: each setup's evaluation return (mean ± std over seeds) along its last phase, at the "
+              "evaluations nearest a tenth, a quarter, half and three quarters of its curve (so far, for an "
+              "unfinished one) and at its end. Every point of both figures is a row of `curves.csv`.", "",
+              curve_table(setups), ""]
     parts += _threshold_and_gallery_figures(setups, out)
     parts += ["## Runs", "", seeds_table(setups), ""]
     text = "\n".join(parts)
@@ -379,6 +429,7 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
             stats = [v for k in keys for v in s.stat(k)]
             writer.writerow([s.env, s.label, s.method, " ".join(str(r.seed) for r in s.runs), *stats])
     write_seeds_csv(setups, out / "seeds.csv")
+    write_curves_csv(setups, out / "curves.csv")
     with (out / "comparisons.csv").open("w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(COLUMNS)

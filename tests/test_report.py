@@ -1,6 +1,7 @@
 """Reports: aggregation over seeds by hand, and the report command on real runs."""
 
 import contextlib
+import csv
 import io
 import json
 import subprocess
@@ -88,6 +89,19 @@ def test_a_run_started_from_another_runs_weights_continues_that_runs_steps(tmp_p
         assert find_runs([tmp_path / "b"])[0].trained_before == 0
         assert not find_runs([tmp_path / "b"])[0].shares_layers_with(a)
     assert "where layer 'slow' started from, cannot be read" in err.getvalue()
+
+
+def test_the_curves_in_numbers_are_read_at_the_evaluations_nearest_each_fraction_of_the_last_phase():
+    from layered.report import curve_points, curve_table
+
+    s = Setup("Pendulum-v1", "p/td3", (run("p/td3", 0, 0, 0, [(step, step - 1000) for step in range(0, 1001, 100)]),
+                                       run("p/td3", 1, 0, 0, [(step, step - 800) for step in range(0, 1001, 100)])))
+    # a quarter (250) and three quarters (750) lie halfway between two evaluations: the earlier one is read
+    assert curve_points(s) == [(100, -800, 100), (200, -700, 100), (500, -400, 100), (700, -200, 100),
+                               (1000, 100, 100)]
+    assert curve_table([s]).splitlines()[2] == (
+        "| Pendulum-v1 | td3 | -800.0 ± 100.0 at 100 | -700.0 ± 100.0 at 200 | -400.0 ± 100.0 at 500 "
+        "| -200.0 ± 100.0 at 700 | 100.0 ± 100.0 at 1k |")
 
 
 def test_bands_are_clipped_to_the_return_bounds():
@@ -198,6 +212,12 @@ def test_report_command_on_real_runs(tmp_path):
     assert (tmp_path / "report" / "curves.png").stat().st_size > 0
     assert len(find_runs([tmp_path / "runs"])) == 3
     assert "pendulum/td3,td3,0 1," in (tmp_path / "report" / "summary.csv").read_text()
+    points = [line.split(",") for line in (tmp_path / "report" / "curves.csv").read_text().splitlines()[1:]]
+    td3 = [(float(row[5]), float(row[6])) for row in points if row[2] == "td3" and row[4] == "last phase"]
+    curves = [[(float(r["step"]), float(r["return_mean"])) for r in csv.DictReader(
+        (tmp_path / "runs" / f"td3-s{seed}" / "metrics.csv").open())] for seed in (0, 1)]
+    assert td3 == [((a[0] + b[0]) / 2, pytest.approx((a[1] + b[1]) / 2)) for a, b in zip(*curves, strict=True)]
+    assert {row[4] for row in points if row[2] == "tla-c"} == {"last phase", "whole run"}
     phases = [line.split(",")[:6] for line in (tmp_path / "report" / "seeds.csv").read_text().splitlines()[1:]]
     assert [row[1:] for row in phases] == [
         ["pendulum/td3", "td3", "0", "0", "fast"], ["pendulum/td3", "td3", "1", "0", "fast"],
