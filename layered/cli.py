@@ -325,9 +325,12 @@ def _finished(out: Path) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from layered.run_evals import gallery, open_run, threshold_sweep
+    from layered.run_evals import gallery, has_threshold, open_run, threshold_sweep
 
     run = open_run(args.run_dir, args.weights, args.plugin, unfinished=True)
+    if (args.threshold is not None or args.threshold_sweep) and not has_threshold(run.recipe, run.active):
+        print(f"layered: note: no layer of this stack ({', '.join(run.active)}) has a contribution that a threshold "
+              "holds back, so every threshold evaluates the same", file=sys.stderr)
     if args.gallery == "":
         args.gallery = run.active[-1]
     if args.gallery is not None and args.gallery not in run.active:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -97,10 +98,12 @@ def _latest_weights(recipe: Recipe, at: Standing) -> dict[str, dict[str, Any]]:
     return seed_weights(recipe, at.latest, at.row, at.rows)
 
 
-def has_threshold(recipe: Recipe) -> bool:
-    """Whether some layer's contribution passes a combiner's evaluation threshold: what Fig. 2 varies."""
-    kinds = [recipe.combiner_kind(i) for i in range(len(recipe.layers))]
-    return any(COMBINERS.get(kind).thresholded for kind in kinds if kind is not None)
+def has_threshold(recipe: Recipe, active: Sequence[str]) -> bool:
+    """Whether, in the stack of the `active` layers, some layer's contribution passes a combiner's evaluation
+    threshold: what Fig. 2 varies. A layer's combiner merges it with the faster layers present, so the fastest
+    present has none that acts."""
+    present = [i for i, name in enumerate(recipe.layer_names()) if name in active]
+    return any((kind := recipe.combiner_kind(i)) is not None and COMBINERS.get(kind).thresholded for i in present[:-1])
 
 
 def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None) -> list[dict[str, Any]]:
@@ -141,9 +144,11 @@ def gallery(run: TrainedRun, layer: str) -> tuple[Path, int, int]:
 def missing_figure_evals(run_dir: Path) -> list[str]:
     """What `layered report` would evaluate for this run: a threshold sweep where a threshold
     applies and none is kept, a gallery of the fastest layer where a stack has several layers."""
+    from layered.orders import phases_of
+
     recipe = load_recipe(run_dir / "recipe.toml")
     missing = []
-    if has_threshold(recipe) and not (run_dir / "eval" / SWEEP_FILE).exists():
+    if has_threshold(recipe, phases_of(recipe)[-1].active) and not (run_dir / "eval" / SWEEP_FILE).exists():
         missing.append("threshold sweep")
     if len(recipe.layers) > 1 and not (run_dir / "eval" / f"gallery-{recipe.layers[-1].name}.png").exists():
         missing.append("gallery")

@@ -50,13 +50,15 @@ def test_a_stopped_run_is_evaluated_at_its_best_weights_so_far(tmp_path, monkeyp
     assert same_weights(run.learners[present[-1]], saved["best"][present[-1]])
     if phase == 1:  # the slow layer as phase 0 handed it on (train.select: best)
         assert same_weights(run.learners["slow"], load_checkpoint(out / "checkpoints/slow.best.pt", "slow"))
-    assert main(["eval", str(out), "--episodes", "2"]) == 0
+    assert main(["eval", str(out), "--episodes", "2"] + ["--threshold", "0.2"] * (phase == 0)) == 0
     err = capsys.readouterr().err
+    assert ("no layer of this stack (slow) has a contribution that a threshold holds back" in err) is (phase == 0)
     assert f"{out} has stopped: at its last checkpoint phase {phase} was at step {loop['step']}" in err
     assert f"evaluating '{present[-1]}' at the best weights so far (evaluated at step {best_step}" in err
-    written = out / "eval" / "unfinished" / f"phase{phase}-best-{best_step}" / "threshold-recipe-episodes-2.json"
+    threshold = "0.2" if phase == 0 else "recipe"
+    written = out / "eval" / "unfinished" / f"phase{phase}-best-{best_step}" / f"threshold-{threshold}-episodes-2.json"
     assert json.loads(written.read_text())["active"] == present
-    assert not (out / "eval" / "threshold-recipe-episodes-2.json").exists()  # apart from what a report reads
+    assert not (out / "eval" / f"threshold-{threshold}-episodes-2.json").exists()  # apart from what a report reads
 
     latest = open_run(out, "final", unfinished=True)  # the learning layer as the checkpoint holds it
     assert same_weights(latest.learners[present[-1]], saved["learners"][present[-1]]["policy"])

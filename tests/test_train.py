@@ -91,6 +91,21 @@ def layered_cli(*args):
     return subprocess.run([sys.executable, "-m", "layered.cli", *map(str, args)], capture_output=True, text=True)
 
 
+@pytest.mark.parametrize("recipe, active, thresholded", [
+    ("pendulum/tla-c.toml", ["slow", "fast"], True),  # the residual's threshold holds back the fast layer
+    ("pendulum/tla-c.toml", ["slow"], False),  # its slow phase: nothing below the slow layer
+    ("pendulum/td3.toml", ["fast"], False),
+    ("pendulum/tla-o.toml", ["slow", "fast"], False),  # a gate has no threshold
+    ("research/pendulum-gate-over-residual-3.toml", ["slow", "mid", "fast"], True),
+    ("research/pendulum-gate-over-residual-3.toml", ["slow", "mid"], False),  # the gate over mid: no fast below
+    ("research/pendulum-gate-over-residual-3.toml", ["mid", "fast"], True),
+])
+def test_a_threshold_acts_where_a_thresholded_combiner_has_a_faster_layer_present(recipe, active, thresholded):
+    from layered.run_evals import has_threshold
+
+    assert has_threshold(load_recipe(PENDULUM.parent / recipe), active) is thresholded
+
+
 def test_cli_train_then_eval_with_threshold(tmp_path):
     out = tmp_path / "run"
     recipe = PENDULUM / "tla-c.toml"
