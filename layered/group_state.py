@@ -192,7 +192,6 @@ def _arrays(tree: Any) -> Any:
     return tree
 
 
-
 def has_group_checkpoint(directory: Path) -> bool:
     """Whether a stopped group waits in `directory` (its newest checkpoint, or the one before)."""
     return (directory / GROUP_CHECKPOINT).exists() or previous(directory / GROUP_CHECKPOINT).exists()

@@ -41,8 +41,6 @@ def mean_losses(losses: dict[str, list[UpdateStats]], loss_names: Mapping[str, S
     return out
 
 
-
-
 def write_results(recipe: Recipe, rows: list[dict[str, Any]], out: Path, label: str) -> None:
     """results.json (every number of the table), results.md, and the learning-curve plot."""
     summary = {"env": recipe.env.id, "label": label, "seed": recipe.train.seed, "phases": rows}

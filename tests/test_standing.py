@@ -144,7 +144,6 @@ def test_a_run_without_a_checkpoint_has_nothing_to_evaluate(tmp_path, capsys):
     assert "no checkpoint yet" in capsys.readouterr().err
 
 
-
 def tensors(state, path=""):
     """Every tensor in a nested learner state, by its path of keys, but generator states (a group has its own)."""
     if isinstance(state, torch.Tensor):
