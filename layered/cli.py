@@ -325,7 +325,8 @@ def _finished(out: Path) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from layered.run_evals import gallery, has_threshold, open_run, threshold_sweep
+    from layered.run_evals import gallery, open_run, threshold_sweep
+    from layered.stack import has_threshold
 
     run = open_run(args.run_dir, args.weights, args.plugin, unfinished=True)
     if (args.threshold is not None or args.threshold_sweep) and not has_threshold(run.recipe, run.active):

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import csv
 import sys
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,8 +13,8 @@ from typing import Any
 from layered.learners import Learner
 from layered.plugins import load_plugins
 from layered.recipe import Recipe, load_recipe
-from layered.combiners import COMBINERS
 from layered.report import DEFAULT_SWEEP
+from layered.stack import has_threshold
 from layered.standing import Standing, standing
 
 SWEEP_FILE = "threshold-sweep.csv"
@@ -96,14 +95,6 @@ def _latest_weights(recipe: Recipe, at: Standing) -> dict[str, dict[str, Any]]:
     if at.row is None:
         return resumed_weights(recipe, at.latest)
     return seed_weights(recipe, at.latest, at.row, at.rows)
-
-
-def has_threshold(recipe: Recipe, active: Sequence[str]) -> bool:
-    """Whether, in the stack of the `active` layers, some layer's contribution passes a combiner's evaluation
-    threshold: what Fig. 2 varies. A layer's combiner merges it with the faster layers present, so the fastest
-    present has none that acts."""
-    present = [i for i, name in enumerate(recipe.layer_names()) if name in active]
-    return any((kind := recipe.combiner_kind(i)) is not None and COMBINERS.get(kind).thresholded for i in present[:-1])
 
 
 def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None) -> list[dict[str, Any]]:

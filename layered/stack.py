@@ -89,6 +89,14 @@ def output_bounds(recipe: Recipe, i: int, env_space: Box, layout: OutputLayout) 
     return low.astype(np.float32), high.astype(np.float32)
 
 
+def has_threshold(recipe: Recipe, active: Sequence[str]) -> bool:
+    """Whether, in the stack of the `active` layers, some layer's contribution passes a combiner's evaluation
+    threshold: what Fig. 2 varies. A present layer's combiner admits the next faster present layer's output
+    (`rules.Rules.walk`), so the fastest present has none that acts."""
+    present = [i for i, name in enumerate(recipe.layer_names()) if name in active]
+    return any((kind := recipe.combiner_kind(i)) is not None and COMBINERS.get(kind).thresholded for i in present[:-1])
+
+
 class Stack:
     """The layers of a recipe over one environment's spaces, with one episode's held outputs."""
 

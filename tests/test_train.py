@@ -101,7 +101,7 @@ def layered_cli(*args):
     ("research/pendulum-gate-over-residual-3.toml", ["mid", "fast"], True),
 ])
 def test_a_threshold_acts_where_a_thresholded_combiner_has_a_faster_layer_present(recipe, active, thresholded):
-    from layered.run_evals import has_threshold
+    from layered.stack import has_threshold
 
     assert has_threshold(load_recipe(PENDULUM.parent / recipe), active) is thresholded
 
