@@ -42,6 +42,12 @@ def normalised_auc(steps: Sequence[float], returns: Sequence[float], return_rang
     return float(np.trapezoid(y, x) / (x[-1] - x[0]))
 
 
+def best_evaluation(returns: Sequence[float]) -> int:
+    """Index of a phase's best evaluation among its mean `returns`: the highest, the earliest on ties (the
+    evaluation whose weights a run keeps as its best)."""
+    return list(returns).index(max(returns))
+
+
 @dataclass(frozen=True)
 class EpisodeMeasures:
     """One episode's return, length, action repetition, jerk, decisions, compute and per-layer activity."""

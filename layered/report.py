@@ -367,8 +367,8 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
              "AUC is the normalised area under the last phase's evaluation curve.", ""]
     if any(not r.finished for s in setups for r in s.runs):
         parts += ["Setups marked *(unfinished)* are runs still training or stopped before their end, each taken at "
-                  "its last evaluation (where that was is in [Runs](#runs)): their AUC and fresh-episode columns "
-                  "are n/a until they finish.", ""]
+                  "its last evaluation (where that was is in [Runs](#runs)), their best step at their best evaluation "
+                  "so far: their AUC and fresh-episode columns are n/a until they finish.", ""]
     if turn:
         parts += ["## Table 1: normalised AUC and average return", "", wide_table(turn, TABLE_1), "",
                   "## Table 2: action repetition and decisions per episode", "", wide_table(turn, TABLE_2), "",

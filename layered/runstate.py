@@ -18,7 +18,7 @@ import torch
 from layered.checkpoint import CheckpointError, load_latest, save_checkpoint
 from layered.replay_journal import ReplayJournal, check_segments, replays_of
 from layered.learners import Learner
-from layered.metrics import Evaluation
+from layered.metrics import Evaluation, best_evaluation
 from layered.pending_losses import PendingLosses
 from layered.rundir import steps_option
 
@@ -63,8 +63,7 @@ class LoopState:
 
     def best_index(self) -> int:
         """Index in `curve` of this phase's best evaluation so far (the earliest, on ties)."""
-        returns = [evaluation.return_mean for _, evaluation in self.curve]
-        return returns.index(max(returns))
+        return best_evaluation([evaluation.return_mean for _, evaluation in self.curve])
 
     def start_phase(self, phase: int, learn: tuple[str, ...], eval_every: int, checkpoint_every: int) -> None:
         """Move to the start of phase `phase`, whose `learn` layers start with no decisions."""

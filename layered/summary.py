@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from layered.metrics import best_evaluation
 from layered.progress import count
 
 PHASES_FILE = "phases.json"  # an unfinished run's finished phases, as results.json will hold them
@@ -115,11 +116,13 @@ def _read_unfinished_run(path: Path) -> Run:
     info = json.loads((path / "run.json").read_text()) if (path / "run.json").exists() else {}
     final = {k: float(v) for k, v in last.items() if k not in ("phase", "learn") and v}
     final["phase"] = int(last["phase"])
+    curve = _curve(rows, last["phase"])
+    final["best_step"], final["best_return_mean"] = curve[best_evaluation([r for _, r in curve])]  # (so far)
     finished = json.loads((path / PHASES_FILE).read_text())["phases"] if (path / PHASES_FILE).exists() else []
     before = tuple(row for row in finished if row["phase"] < final["phase"])
     return Run(
         path=path, env=recipe["env"]["id"], label=info.get("label") or _label(path), seed=int(recipe["train"]["seed"]),
-        realtime=_realtime(recipe), final=final, curve=_curve(rows, last["phase"]),
+        realtime=_realtime(recipe), final=final, curve=curve,
         phases=(*before, {**final, "learn": last["learn"].split("+")}),
         stands=f"phase {last['phase']}, step {last['step']}", setting=_setting(recipe), **_whole_run(rows, recipe),
     )

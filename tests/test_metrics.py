@@ -7,6 +7,7 @@ from layered.metrics import (
     Evaluation,
     EpisodeMeter,
     StepRecord,
+    best_evaluation,
     measure_episode,
     normalised_auc,
     summarise,
@@ -35,6 +36,12 @@ def test_normalised_auc_is_the_trapezoid_over_range_and_span():
     assert normalised_auc([0, 10, 30], [-1550, -775, 0], (-1550, 0)) == pytest.approx(17.5 / 30)
     assert normalised_auc([0, 5000], [1000, 1000], (0, 1000)) == pytest.approx(1.0)
     assert normalised_auc([7], [50], (0, 100)) == pytest.approx(0.5)
+
+
+def test_the_best_evaluation_is_the_highest_and_the_earliest_of_equals():
+    assert best_evaluation([-900.0, -150.5, -151.0, -150.5]) == 1  # index 3 ties it, later
+    assert best_evaluation([5.0]) == 0
+    assert best_evaluation([1.0, 2.0, 3.0]) == 2
 
 
 def test_jerk_is_the_mean_absolute_change_over_steps_and_dimensions():

@@ -250,16 +250,17 @@ def test_an_unfinished_run_is_taken_at_its_last_evaluation_only_when_asked(tmp_p
     (run_dir / "run.json").write_text(json.dumps({"label": "hopper/tla-realtime", "group": [3]}))
     (run_dir / "metrics.csv").write_text("phase,learn,step,return_mean,repetition,critic_loss_slow\n"
                                          "0,slow,0,100,0.5,\n0,slow,5000,300,0.5,2.5\n1,fast,0,280,0.4,\n"
-                                         "1,fast,5000,350,0.25,1.5\n")
+                                         "1,fast,5000,350,0.25,1.5\n1,fast,10000,350,0.2,1.25\n1,fast,15000,90,0.2,1\n")
     with pytest.raises(FileNotFoundError, match="1 run in it not finished: --unfinished reports them"):
         find_runs([tmp_path / "runs"])
     (run_,) = find_runs([tmp_path / "runs"], unfinished=True)
-    assert not run_.finished and run_.stands == "phase 1, step 5000"
+    assert not run_.finished and run_.stands == "phase 1, step 15000"
     assert (run_.env, run_.label, run_.seed, run_.realtime) == ("Hopper-v5", "hopper/tla-realtime", 3, True)
     assert run_.method == "tla-realtime (unfinished)"
-    assert run_.final == {"step": 5000.0, "return_mean": 350.0, "repetition": 0.25, "critic_loss_slow": 1.5,
-                          "phase": 1}
-    assert run_.curve == ((0, 280.0), (5000, 350.0)) and run_.phase_starts == (5000,)
+    # its last evaluation, and its best so far: the earlier of two of 350 (the evaluation whose weights it keeps)
+    assert run_.final == {"step": 15000.0, "return_mean": 90.0, "repetition": 0.2, "critic_loss_slow": 1.0,
+                          "phase": 1, "best_step": 5000, "best_return_mean": 350.0}
+    assert run_.curve == ((0, 280.0), (5000, 350.0), (10000, 350.0), (15000, 90.0)) and run_.phase_starts == (5000,)
     (run_dir / "metrics.csv").write_text("phase,learn,step,return_mean\n")  # started, not yet evaluated
     with pytest.raises(FileNotFoundError, match="no readable run"):
         find_runs([tmp_path / "runs"], unfinished=True)
