@@ -334,10 +334,14 @@ def find_runs(paths: Sequence[Path], unfinished: bool = False) -> list[Run]:
     found: list[Run] = []
     for path in paths:
         dirs = _run_dirs(path, "results.json")
-        left = _unfinished_dirs(path) if unfinished or not dirs else []  # (looked for only when wanted or named)
+        left = _unfinished_dirs(path)
         if not dirs and not (unfinished and left):
             hint = f"; {count(len(left), 'run')} in it not finished: --unfinished reports them" if left else ""
             raise FileNotFoundError(f"{path}: no finished runs (no results.json) in it{hint}")
+        if left and not unfinished:
+            print(f"layered: note: {count(len(left), 'run')} in {path} not finished, left out (--unfinished reports "
+                  f"{'it' if len(left) == 1 else 'them'} at {'its' if len(left) == 1 else 'their'} last evaluation)",
+                  file=sys.stderr)
         loads = [(d, load_finished_run) for d in dirs] + [(d, load_unfinished_run) for d in left if unfinished]
         for d, load in sorted(loads, key=lambda item: item[0]):
             try:

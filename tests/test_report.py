@@ -273,6 +273,12 @@ def test_report_of_a_stopped_run_beside_a_finished_one(tmp_path, monkeypatch):
     train_until_stopped(monkeypatch, load_recipe(PENDULUM / "td3.toml", [*TINY, "train.seed=1"]), stopped, 1,
                         max_steps=400, progress=False, label="pendulum/td3")
     last = (stopped / "metrics.csv").read_text().splitlines()[-1].split(",")  # phase, learn, step, return_mean ...
+    proc = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(tmp_path / "runs"),
+                           "--out", str(tmp_path / "finished"), "--no-extra-evals"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "(unfinished)" not in proc.stdout and str(stopped) not in proc.stdout
+    assert (f"layered: note: 1 run in {tmp_path / 'runs'} not finished, left out (--unfinished reports it at its last "
+            "evaluation)") in proc.stderr
     proc = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(tmp_path / "runs"), "--unfinished",
                            "--out", str(tmp_path / "report")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
