@@ -340,8 +340,7 @@ def find_runs(paths: Sequence[Path], unfinished: bool = False) -> list[Run]:
             raise FileNotFoundError(f"{path}: no finished runs (no results.json) in it{hint}")
         if left and not unfinished:
             print(f"layered: note: {count(len(left), 'run')} in {path} not finished, left out (--unfinished reports "
-                  f"{'it' if len(left) == 1 else 'them'} at {'its' if len(left) == 1 else 'their'} last evaluation)",
-                  file=sys.stderr)
+                  "such runs at their last evaluation)", file=sys.stderr)
         loads = [(d, load_finished_run) for d in dirs] + [(d, load_unfinished_run) for d in left if unfinished]
         for d, load in sorted(loads, key=lambda item: item[0]):
             try:

@@ -277,8 +277,8 @@ def test_report_of_a_stopped_run_beside_a_finished_one(tmp_path, monkeypatch):
                            "--out", str(tmp_path / "finished"), "--no-extra-evals"], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert "(unfinished)" not in proc.stdout and str(stopped) not in proc.stdout
-    assert (f"layered: note: 1 run in {tmp_path / 'runs'} not finished, left out (--unfinished reports it at its last "
-            "evaluation)") in proc.stderr
+    assert (f"layered: note: 1 run in {tmp_path / 'runs'} not finished, left out (--unfinished reports such runs at "
+            "their last evaluation)") in proc.stderr
     proc = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(tmp_path / "runs"), "--unfinished",
                            "--out", str(tmp_path / "report")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
