@@ -85,9 +85,10 @@ RECIPE: dict[str, Any] = {
     "learner": {"kind": "td3", "hidden": [400, 300], "batch_size": 256},
     "eval": {"episodes": 1, "fresh_episodes": 0},
 }
-# a progress line: "<phase>: step S/T, eval return R ± D, N steps/s[, warm-up][, about T left]"
-RATE = re.compile(r"^(.*): step \d+/\d+, eval return [^,]*, (\d+) steps/s(, warm-up)?(?:, about .* left.*)?$",
-                  re.MULTILINE)
+# a progress line (`layered.progress`): "<phase>: step S/T, eval return R ± D, N steps/s[ per seed (M in all)]
+# [, warm-up][, about T left[ in this phase, then ...]]"
+RATE = re.compile(r"^(.*): step \d+/\d+, eval return [^,]*, (\d+) steps/s(?: per seed \(\d+ in all\))?(, warm-up)?"
+                  r"(?:, about .* left.*)?$", re.MULTILINE)
 ROOT = Path(__file__).resolve().parent.parent
 REALTIME_TLA = ROOT / "recipes/hopper/tla-realtime.toml"
 REALTIME_WARMUP = ["layers.slow.warmup=500", "layers.fast.warmup=1000"]  # the recipe's 10k and 20k, cut to the run
