@@ -261,16 +261,23 @@ def target_names(text: str) -> list[str]:
     return names
 
 
-def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float]]:
-    """The engine's targets: (what, the setting measured, steps/s or why it failed, steps/s needed) per setting."""
+Row = tuple[str, str, float | str, float, float | None]
+
+
+def targets(args: argparse.Namespace) -> list[Row]:
+    """The engine's targets: (what, the setting measured, steps/s or why it failed, steps/s needed, GPU MiB per seed
+    where a group measured it) per setting."""
     k = args.target_seeds
-    rows: list[tuple[str, str, float | str, float]] = []
+    rows: list[Row] = []
 
     def measured(what: str, setting: str, needed: float, run: Any) -> None:
+        """A row of `run()`: steps/s, or a group's result (its aggregate and memory per seed)."""
         try:
-            rows.append((what, setting, run(), needed))
+            value = run()
+            rate, memory = (value["aggregate"], value["mib_per_seed"]) if isinstance(value, dict) else (value, None)
+            rows.append((what, setting, rate, needed, memory))
         except Failed as e:
-            rows.append((what, setting, str(e), needed))
+            rows.append((what, setting, str(e), needed, None))
         print(_target_row(rows[-1]), flush=True)
 
     one = "one TD3 seed, HalfCheetah-v5, 256-256"
@@ -286,7 +293,7 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
                 measured(one, f"{'single run' if single else 'group of 1'}, compile {mode}, with evaluations", 936,
                          lambda mode=mode, single=single: group(args.device, 1, None, "HalfCheetah-v5", "256,256",
                                                                 args.steps, args.warmup, every(args), mode, "0", [],
-                                                                single=single)["aggregate"])
+                                                                single=single))
     for name, what, recipe, env, settings, needed in (
             ("hopper", f"{k} TD3 seeds of Hopper-v5, 400-300", None, "Hopper-v5", [], 20_000),
             ("realtime", f"{k} seeds of real-time Hopper TLA (2 layers)", str(REALTIME_TLA), "Hopper-v5",
@@ -305,7 +312,7 @@ def targets(args: argparse.Namespace) -> list[tuple[str, str, float | str, float
                     measured(what, f"compile {mode}, env.workers {workers}{apart}", needed,
                              lambda recipe=recipe, env=env, settings=settings, mode=mode, workers=workers,
                              splits=splits: group(args.device, k, recipe, env, "400,300", args.steps, args.warmup,
-                                                  every(args), mode, workers, settings, splits)["aggregate"])
+                                                  every(args), mode, workers, settings, splits))
     return rows
 
 
@@ -313,12 +320,12 @@ def print_targets(args: argparse.Namespace) -> None:
     """Measure the targets, a row per setting as it ends, then the best setting of each target against it."""
     print(f"\nThe engine's targets ({args.steps} steps per run and phase, {args.warmup} random; real-time TLA with "
           f"{', '.join(REALTIME_WARMUP)}; one evaluation episode every {every(args)} steps)\n", flush=True)
-    print("| target | setting | steps/s | needed | met |\n|---|---|---|---|---|", flush=True)
+    print("| target | setting | steps/s | needed | met | GPU MiB per seed |\n|---|---|---|---|---|---|", flush=True)
     rows = targets(args)
     best: dict[str, float] = {}
-    for what, _, value, _ in rows:
-        if not isinstance(value, str):
-            best[what] = max(best.get(what, 0.0), value)
+    for what, _, rate, _, _ in rows:
+        if not isinstance(rate, str):
+            best[what] = max(best.get(what, 0.0), rate)
     print("\n| target | best steps/s | needed | met |\n|---|---|---|---|")
     for what, needed in dict.fromkeys((row[0], row[3]) for row in rows):
         value = best.get(what)
@@ -326,11 +333,12 @@ def print_targets(args: argparse.Namespace) -> None:
         print(f"| {what} | {shown} | {needed:,.0f} | {'yes' if value is not None and value >= needed else 'no'} |")
 
 
-def _target_row(row: tuple[str, str, float | str, float]) -> str:
-    what, setting, value, needed = row
+def _target_row(row: Row) -> str:
+    what, setting, value, needed, memory = row
     if isinstance(value, str):
-        return f"| {what} | {setting} | failed: {value} | {needed:,.0f} | no |"
-    return f"| {what} | {setting} | {value:,.0f} | {needed:,.0f} | {'yes' if value >= needed else 'no'} |"
+        return f"| {what} | {setting} | failed: {value} | {needed:,.0f} | no | |"
+    return (f"| {what} | {setting} | {value:,.0f} | {needed:,.0f} | {'yes' if value >= needed else 'no'} "
+            f"| {'' if memory is None else mib(memory)} |")
 
 
 def every(args: argparse.Namespace) -> int:

@@ -6,11 +6,15 @@ the update), as LeanRL's published rates are. Prints the median and 90th percent
 over the steps with updates before the profiler's window, and the window's kernels (GPU time) and host
 operations (CPU time), in tables; writes the window's trace (Chrome format, gzipped) beside them with
 `--trace`. With `--window 0` nothing is profiled: the steps are timed alone (`gpu.py --parts targets`
-takes a group of one's rate so).
+takes a group of one's rate so). With `--pystats FILE` the training process's Python functions are profiled
+(`cProfile`) over the timed steps, which it slows, and their totals written to FILE: where the host's time
+goes when the host, not the GPU, sets a group's pace.
 
     python benchmarks/gpu_profile.py                                   # one HalfCheetah-v5 seed, 256-256
     python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto
     python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers 0 --env-threads 8
+    python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto --window 0 \
+        --pystats host.txt
     python benchmarks/gpu_profile.py --device cpu --steps 1600 --window 50   # checks the script on a CPU
 """
 
@@ -18,8 +22,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import cProfile
 import gzip
+import io
 import json
+import pstats
 import shutil
 import statistics
 import sys
@@ -38,15 +45,17 @@ from layered import progress
 from layered.cli import main as layered
 
 
-def profiled(args: argparse.Namespace, tmp: Path) -> tuple[list[float], torch.profiler.profile | None]:
+def profiled(args: argparse.Namespace, tmp: Path, host: cProfile.Profile | None = None
+             ) -> tuple[list[float], torch.profiler.profile | None]:
     """Train the group; the times between its steps, and the profiler that recorded the last `--window` steps
-    (None for a window of none)."""
+    (None for a window of none). `host`, where given, profiles the Python functions over the timed steps."""
     recipe = tmp / "td3.toml"
     mode = "cudagraphs" if args.device == "cuda" else "off"
     recipe.write_text(tomli_w.dumps(td3_recipe(args.env, args.hidden, args.steps, args.warmup, 10 * args.steps,
                                                compile=mode)))
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if args.device == "cuda" else [])
     wait = args.steps - args.window - 20 if args.window else args.steps
+    first = args.warmup + (wait - args.warmup) // 4  # (the first updates capture their graphs)
     stamps: list[float] = []
     advance = progress.Progress.advance
     window = (profile(activities=activities, schedule=schedule(wait=wait, warmup=20, active=args.window))
@@ -57,6 +66,8 @@ def profiled(args: argparse.Namespace, tmp: Path) -> tuple[list[float], torch.pr
             if prof is not None:
                 prof.step()
             stamps.append(time.perf_counter())
+            if host is not None and len(stamps) in (first + 1, wait):
+                (host.enable if len(stamps) == first + 1 else host.disable)()
 
         progress.Progress.advance = stepped  # type: ignore[method-assign,assignment]
         try:
@@ -64,8 +75,16 @@ def profiled(args: argparse.Namespace, tmp: Path) -> tuple[list[float], torch.pr
                      "--out", str(tmp / "runs"), f"env.workers={args.workers}", f"env.threads={args.env_threads}"])
         finally:
             progress.Progress.advance = advance  # type: ignore[method-assign]
-    first = args.warmup + (wait - args.warmup) // 4  # (the first updates capture their graphs)
     return [b - a for a, b in zip(stamps[first:wait], stamps[first + 1:wait], strict=False)], prof
+
+
+def python_totals(host: cProfile.Profile, steps: int) -> str:
+    """The profiled functions' totals over `steps` training steps, by their own time and by their cumulative time."""
+    text = io.StringIO()
+    print(f"{steps} training steps profiled (cProfile's own overhead included)", file=text)
+    for order in ("tottime", "cumtime"):
+        pstats.Stats(host, stream=text).sort_stats(order).print_stats(40)
+    return text.getvalue()
 
 
 def main() -> None:
@@ -81,15 +100,19 @@ def main() -> None:
     parser.add_argument("--window", type=int, default=200, help="steps the profiler records, at the end (0: none)")
     parser.add_argument("--trace", type=Path, help="write the window's trace here (.json.gz)")
     parser.add_argument("--times", type=Path, help="write the timed steps' durations here (seconds, JSON)")
+    parser.add_argument("--pystats", type=Path, help="profile the timed steps' Python functions; their totals here")
     args = parser.parse_args()
+    host = cProfile.Profile() if args.pystats else None
     with tempfile.TemporaryDirectory() as tmp:
-        gaps, prof = profiled(args, Path(tmp))
+        gaps, prof = profiled(args, Path(tmp), host)
         if args.trace and prof is not None:
             prof.export_chrome_trace(str(Path(tmp) / "trace.json"))
             with open(Path(tmp) / "trace.json", "rb") as f, gzip.open(args.trace, "wb") as g:
                 shutil.copyfileobj(f, g)
     if args.times:
         args.times.write_text(json.dumps(gaps))
+    if host is not None:
+        args.pystats.write_text(python_totals(host, len(gaps)))
     deciles = statistics.quantiles(gaps, n=10)
     print(f"\n{args.seeds} seed(s) of TD3 ({args.hidden}) on {args.env}, {args.device}: a training step took a median "
           f"of {statistics.median(gaps) * 1e3:.3f} ms (p90 {deciles[-1] * 1e3:.3f} ms) over {len(gaps)} steps, "
