@@ -446,8 +446,9 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.exit(2, f"gpu.py: no CUDA device here (torch {torch.__version__}); --device cpu makes a dry run\n")
     where = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {os.cpu_count()} cores"
-    print(f"TD3 ({args.hidden}) on {args.env}, {args.steps} steps per run ({args.warmup} random), "
-          f"torch {torch.__version__}, {where}")
+    benchmark = "" if set(args.parts.split(",")) <= {"targets"} else (  # (the targets name their own settings)
+        f"TD3 ({args.hidden}) on {args.env}, {args.steps} steps per run ({args.warmup} random), ")
+    print(f"{benchmark}torch {torch.__version__}, {where}")
     parts = {"modes": print_modes, "sweep": print_sweeps, "group": print_groups, "targets": print_targets}
     for name, part in parts.items():
         if name in args.parts:
