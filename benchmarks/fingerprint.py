@@ -10,7 +10,9 @@ A refactoring of the stack's rules, the loop or the learners is behaviour-preser
 listings match on one machine: metrics.csv, episodes.csv, results.json and every checkpoint. Floating
 point differs between machines, so the hashes are compared between runs on the same one, never stored.
 Each run is small (networks of 32-32, 1500 steps per phase) and one torch thread is used. `--set
-learner.precision=float32` compares float32 runs on a machine where `auto` computes in bfloat16.
+learner.precision=float32` compares float32 runs on a machine where `auto` computes in bfloat16. `--group K`
+trains each recipe's seeds 0 to K-1 as one group instead (the group's loop and stacked learners) and hashes
+every seed's files.
 """
 
 from __future__ import annotations
@@ -51,19 +53,27 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="names of the runs to make (default: all)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a recipe setting for every run, e.g. learner.precision=float32 (repeatable)")
+    parser.add_argument("--group", type=int, default=0, metavar="K", help="train seeds 0 to K-1 of each as a group")
     args = parser.parse_args()
     torch.set_num_threads(1)
     from layered import load_recipe, train
+    from layered.group import train_group
+    from layered.group_state import seed_dirs
 
     for name, (recipe, extra) in RUNS.items():
         if args.only and name not in args.only:
             continue
-        run_dir = args.out / name
-        if not args.hash_only:
-            train(load_recipe(ROOT / "recipes" / recipe, [*SMALL, *extra, *args.set]), run_dir, max_steps=STEPS,
-                  progress=False, label=name)
-        for file, digest in digests(run_dir).items():
-            print(f"{name}/{file} {digest}")
+        settings = [*SMALL, *extra, *args.set]
+        run_dirs = seed_dirs(args.out / name, list(range(args.group))) if args.group else [args.out / name]
+        if not args.hash_only and args.group:
+            train_group([load_recipe(ROOT / "recipes" / recipe, [*settings, f"train.seed={k}"])
+                         for k in range(args.group)], run_dirs, name, max_steps=STEPS, progress=False)
+        elif not args.hash_only:
+            train(load_recipe(ROOT / "recipes" / recipe, settings), run_dirs[0], max_steps=STEPS, progress=False,
+                  label=name)
+        for run_dir in run_dirs:
+            for file, digest in digests(run_dir).items():
+                print(f"{run_dir.relative_to(args.out)}/{file} {digest}")
         sys.stdout.flush()
 
 

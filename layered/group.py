@@ -92,6 +92,9 @@ GroupLearner = TD3Group | ChoiceLearnerGroup
 STACKED: dict[str, type[TD3Group] | type[ChoiceLearnerGroup]] = {"td3": TD3Group, "td3-gate": GateTD3Group,
                                                                  "temporl": TempoRLGroup}
 """The learners a group stacks over its seeds, by kind (each takes the seeds' single learners of that kind)."""
+Transitions = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                    list[list[tuple[np.ndarray, float, int]]]]
+"""A layer's completed transitions as its group learner's `observe` takes them (see `Group._transitions`)."""
 
 
 @dataclass
@@ -356,6 +359,7 @@ class Group:
             for i in learn:
                 decisions[i][:] = [seed.state.decisions[self.names[i]] for seed in self.seeds]
         pending = loop.pending
+        queued: list[tuple[int, Transitions]] = []  # the decisions' transitions, stored while the environments step
         losses = {self.names[i]: PendingLosses() for i in learn}
         every = np.ones(self.rows, bool)
         label = f"phase {p}: {'+'.join(phase.learn)} ({count(self.rows, 'seed')})"
@@ -367,7 +371,9 @@ class Group:
             if i not in pending:
                 return group.act(full, explore=False)[deciding]
             mine = pending[i]
-            self._store(i, mine, deciding & mine.open, full, np.zeros(self.rows, bool), stack)
+            if (transitions := self._transitions(i, mine, deciding & mine.open, full, np.zeros(self.rows, bool),
+                                                 stack)) is not None:
+                queued.append((i, transitions))
             explored = group.act(full, explore=True)
             outputs = np.where((decisions[i] < warmups[i])[:, None], group.random_action(), explored)
             mine.decide(deciding, seen)
@@ -384,7 +390,10 @@ class Group:
                         _check_finite(rules.decided[i][rows], "action", self.names[i], p, loop.step)
                 composition = rules.compose()
                 envs.step_async(composition.action, every, restart=True)  # (an episode that ends starts again)
-                for i in learn:  # queued while the environments step (on a GPU, or with env.workers)
+                for i, transitions in queued:  # stored, then updated on, while the environments step (on a GPU, or
+                    self.learners[self.names[i]].observe(*transitions)  # with env.workers): the host waits there
+                queued.clear()
+                for i in learn:
                     self._update(self.names[i], decided[i] & (decisions[i] > warmups[i]), losses)
                 reward, terminated, truncated = envs.step_wait()
                 _check_finite(envs.last, "observation", None, p, loop.step)
@@ -494,12 +503,20 @@ class Group:
     def _store(self, i: int, mine: Pending, rows: np.ndarray, next_seen: np.ndarray, terminated: np.ndarray,
                stack: Stack) -> None:
         """Store layer i's completed transitions in the `rows`, now that it sees `next_seen`."""
+        if (transitions := self._transitions(i, mine, rows, next_seen, terminated, stack)) is not None:
+            self.learners[self.names[i]].observe(*transitions)
+
+    @staticmethod
+    def _transitions(i: int, mine: Pending, rows: np.ndarray, next_seen: np.ndarray, terminated: np.ndarray,
+                     stack: Stack) -> Transitions | None:
+        """Layer i's completed transitions in the `rows`, now that it sees `next_seen`, as its learner's `observe`
+        takes them, copied out of `mine` (which the layer's next decisions overwrite); None where there are none."""
         if not rows.any():
-            return
+            return None
         layer = stack.layers[i]
         discount = layer.gamma ** np.where(layer.discount_per_step, mine.elapsed, 1)
-        self.learners[self.names[i]].observe(mine.seen, mine.output, mine.reward, next_seen, terminated, discount,
-                                             rows, mine.path)
+        return (mine.seen.copy(), mine.output.copy(), mine.reward.copy(), next_seen, terminated, discount, rows,
+                list(mine.path))
 
     def _evaluate(self, phase: Phase, evaluator: Stacks, losses: dict[str, PendingLosses],
                   step: int, bar: Progress) -> None:

@@ -187,6 +187,33 @@ def test_a_repeating_layers_decisions_carry_the_path_its_own_stack_gives(tmp_pat
                 assert np.allclose(o1, o2, atol=1e-6) and r1 == pytest.approx(r2, abs=1e-5) and u1 == u2, t
 
 
+def test_a_steps_transitions_are_stored_while_the_environments_step_and_before_the_update(tmp_path, monkeypatch):
+    """The transitions a step's decisions complete are stored after the environments are asked to step (the host's
+    store runs beside their step, where it waits anyway) and before the update that samples them."""
+    from layered.env_group import EnvGroup
+
+    group, recipes, _ = tiny_group("pendulum/td3.toml", [0, 1], tmp_path)
+    events = []
+
+    def recorded(name, call):
+        def record(*args, **kwargs):
+            events.append(name)
+            return call(*args, **kwargs)
+        return record
+
+    step_async = EnvGroup.step_async
+    monkeypatch.setattr(EnvGroup, "step_async", lambda self, *a, **k: recorded("step", step_async)(self, *a, **k))
+    learner = group.learners["fast"]
+    monkeypatch.setattr(learner, "observe", recorded("store", learner.observe))
+    monkeypatch.setattr(learner, "update", recorded("update", learner.update))
+    phase = phases_of(recipes[0])[0]
+    for seed in group.seeds:
+        seed.state.start_phase(0, phase.learn, 10**9, 10**9)
+    group.run_phase(phase, 60)  # (Pendulum's episodes last 200 steps: no episode ends, whose stores follow the step)
+    assert events.count("store") == 59 and events.count("update") == 20  # (decisions 41 to 60: past the warm-up)
+    assert all(events[t - 1] == "step" for t, event in enumerate(events) if event == "store")
+    assert all(events[t - 1] == "store" for t, event in enumerate(events) if event == "update")
+
 def test_each_seed_reads_back_the_losses_of_the_updates_it_took_part_in():
     """Three updates of three seeds: the losses each seed's loop state gets, written out by hand; a non-finite
     value of a seed left out of an update is never read, one of a seed that took part stops the group."""
