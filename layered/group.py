@@ -5,8 +5,9 @@ Every base step, the K stacks step together: one `Rules` over K rows decides for
 each layer's learners of the K seeds act as one stacked network (`TD3Group`, or a `ChoiceLearnerGroup`
 for the gate's and TempoRL's), and each learning layer updates the seeds it decided in with one masked,
 batched update, queued while the K environments step (`layered.env_workers` steps them in processes of
-their own): an update draws from the transitions stored before the step, so an episode's last transition
-joins the next step's minibatches, not its own step's. What the single loop (`layered.trainer`) does per episode
+their own), after the transitions that the step's decisions complete are stored, beside the step too: an
+update draws from the transitions stored before the step's end, so an episode's last transition joins the
+next step's minibatches, not its own step's. What the single loop (`layered.trainer`) does per episode
 end, evaluation and phase end is done per seed, and each seed writes its own run directory in the
 single run's format, so `eval`, `report` and `export` take any one seed. The numbers are a seed's own
 but not bit-identical to its single run (the group draws its noise and minibatches from generators of
