@@ -201,8 +201,7 @@ def test_a_steps_transitions_are_stored_while_the_environments_step_and_before_t
             return call(*args, **kwargs)
         return record
 
-    step_async = EnvGroup.step_async
-    monkeypatch.setattr(EnvGroup, "step_async", lambda self, *a, **k: recorded("step", step_async)(self, *a, **k))
+    monkeypatch.setattr(EnvGroup, "step_async", recorded("step", EnvGroup.step_async))  # (bound as a method)
     learner = group.learners["fast"]
     monkeypatch.setattr(learner, "observe", recorded("store", learner.observe))
     monkeypatch.setattr(learner, "update", recorded("update", learner.update))
@@ -213,6 +212,7 @@ def test_a_steps_transitions_are_stored_while_the_environments_step_and_before_t
     assert events.count("store") == 59 and events.count("update") == 20  # (decisions 41 to 60: past the warm-up)
     assert all(events[t - 1] == "step" for t, event in enumerate(events) if event == "store")
     assert all(events[t - 1] == "store" for t, event in enumerate(events) if event == "update")
+
 
 def test_each_seed_reads_back_the_losses_of_the_updates_it_took_part_in():
     """Three updates of three seeds: the losses each seed's loop state gets, written out by hand; a non-finite
