@@ -7,11 +7,14 @@ all K states at once in MuJoCo's threads (`--threads`), in this process. Every w
 same K states and steps them with the same actions (episode ends are not acted on, so each way follows the
 same trajectories); medians of `--repeats` timings of `--steps` steps each, the ways alternating. With
 `--layered`, a group's own environments (`layered.env_workers.open_envs`) too, for each pair of `env.workers`
-and `env.threads` given: the rows reset from the same seeds before each timing, stepped with the same actions.
+and `env.threads` given (and `env.wait`, after a second colon): the rows reset from the same seeds before each
+timing, stepped with the same actions; with `--busy MS`, this process busy for MS milliseconds between asking
+for each step and collecting it (as a group's update keeps it), so that a worker's hand-over shows as in training.
 
     python benchmarks/env_step.py                          # 32 Hopper-v5 rows; 2 Python threads; rollout 0, 1, 2
     python benchmarks/env_step.py --env Walker2d-v5 --rows 64 --py-threads 4,8,15 --threads 0,4,8,15
     python benchmarks/env_step.py --layered 0:0,0:2,1:0,1:2    # env.workers:env.threads
+    python benchmarks/env_step.py --rows 4 --layered 0:0,1:0:sleep,1:0:spin --busy 0.3 --steps 2000 --repeats 5
 
 A lead for lighter environment stepping, not a path the project takes yet: the rollout's states are not
 Gymnasium's environments (no observations, rewards or episode ends are made from them here, and a rollout
@@ -92,13 +95,18 @@ class Rows:
                     state = out[:, -1]
         return run
 
-    def layered(self, envs: Envs) -> Callable[[], None]:
+    def layered(self, envs: Envs, busy: float = 0.0) -> Callable[[], None]:
+        """A group's environments stepped through the actions, this process busy for `busy` seconds in each step."""
         every = np.ones(len(self.envs), bool)
 
         def run() -> None:
             envs.reset(every, list(range(len(self.envs))))
             for step in self.actions:
-                envs.step(step, every)
+                envs.step_async(step, every)
+                until = time.perf_counter() + busy
+                while time.perf_counter() < until:
+                    pass
+                envs.step_wait()
         return run
 
 
@@ -110,7 +118,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--py-threads", default="2", help="Python thread counts stepping Gymnasium's rows")
     parser.add_argument("--threads", default="0,1,2", help="rollout thread counts (0: on the calling thread)")
-    parser.add_argument("--layered", default="", help="env.workers:env.threads pairs of a group's own environments")
+    parser.add_argument("--layered", default="",
+                        help="env.workers:env.threads pairs of a group's environments, each with :env.wait if wanted")
+    parser.add_argument("--busy", type=float, default=0.0, help="ms this process works between asking and collecting")
     args = parser.parse_args()
     rows = Rows(args.env, args.rows, args.steps)
     rows.actions = rows.actions.astype(np.float32)
@@ -121,11 +131,12 @@ def main() -> None:
     for threads in map(int, args.threads.split(",")):
         name = f"mujoco.rollout, {threads} threads" if threads else "mujoco.rollout, on the calling thread"
         ways[name] = rows.rollout(threads)
-    opened = []
+    opened: list[Envs] = []
     for pair in filter(None, args.layered.split(",")):
-        workers, threads = map(int, pair.split(":"))
-        opened.append(open_envs(args.env, args.rows, workers, threads))
-        ways[f"a group's environments, env.workers {workers}, env.threads {threads}"] = rows.layered(opened[-1])
+        workers, threads, *wait = pair.split(":")
+        opened.append(open_envs(args.env, args.rows, int(workers), int(threads), wait=wait[0] if wait else "sleep"))
+        name = f"a group's environments, env.workers {workers}, env.threads {threads}{''.join(f', {w}' for w in wait)}"
+        ways[name + (f", busy {args.busy:g} ms" if args.busy else "")] = rows.layered(opened[-1], args.busy / 1e3)
     times: dict[str, list[float]] = {name: [] for name in ways}
     for _ in range(args.repeats):
         for name, way in ways.items():
@@ -137,8 +148,10 @@ def main() -> None:
     for name, seconds in times.items():
         median = statistics.median(seconds)
         print(f"| {name} | {median * 1e3:.3f} | {median * 1e6 / args.rows:.1f} |")
-    for env in [*rows.envs, *opened]:
+    for env in rows.envs:
         env.close()
+    for envs in opened:
+        envs.close()
 
 
 if __name__ == "__main__":

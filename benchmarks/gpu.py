@@ -15,7 +15,8 @@ Pendulum-v1; `--hidden`, default 400-300; batch 256), or for the sweep and group
 * **group**: `layered train --seeds K --device cuda`, K seeds as one computation in one process, for
   each K of `--groups`, its update eager and captured as CUDA graphs (`--group-modes`), its
   environments stepped in the training process or in worker processes, and in how many threads of each
-  (`--group-workers`, `env.workers` or `env.workers:env.threads` values); the rate
+  (`--group-workers`, `env.workers`, `env.workers:env.threads` or `env.workers:env.threads:env.wait` values, as
+  `auto`, `auto:0` or `auto:0:sleep`); the rate
   of its progress lines times K is the aggregate, and its process's peak GPU memory over K the memory
   per seed. With `--splits S` the K seeds are also cut into S groups trained at once, each its own
   process pinned to its share of the cores (where a group's host work, not the GPU, sets its pace, S
@@ -48,6 +49,7 @@ LeanRL's figure has none, so to compare with it, space the evaluations out (the 
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --group-workers 0,auto
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --group-modes cudagraphs \
         --group-workers auto,auto:2,0:1,0:8,16
+    python benchmarks/gpu.py --parts targets --targets hopper --group-workers auto:auto:sleep,auto:auto:spin
     python benchmarks/gpu.py --env Hopper-v5 --parts group --groups 32 --splits 1,2,4 --group-modes cudagraphs
     python benchmarks/gpu.py --parts group --groups 32 --recipe recipes/hopper/tla-realtime.toml \
         --set layers.slow.warmup=500 --set layers.fast.warmup=1000
@@ -203,21 +205,21 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
 
 
 def environment_settings(workers: str) -> list[str]:
-    """The recipe settings of a `--group-workers` value: `W` (env.workers, its threads `auto`) or `W:T` (and
-    env.threads)."""
-    processes, _, threads = workers.partition(":")
-    return [f"env.workers={processes}", f"env.threads={threads or 'auto'}"]
+    """The recipe settings of a `--group-workers` value: `W` (env.workers, its threads and its wait `auto`), `W:T`
+    (and env.threads) or `W:T:WAIT` (and env.wait)."""
+    processes, threads, wait = (*workers.split(":"), "", "")[:3]
+    return [f"env.workers={processes}", f"env.threads={threads or 'auto'}", f"env.wait={wait or 'auto'}"]
 
 
 def training_steps(device: str, env: str, hidden: str, steps: int, warmup: int, seeds: int = 1, workers: str = "0"
                    ) -> float:
     """A group's aggregate steps/s over its training steps alone (its evaluations and checkpoints beyond the run),
     timed step by step by `gpu_profile.py --window 0` in a process of its own."""
-    processes, _, threads = workers.partition(":")
+    settings = [setting.partition("=")[2] for setting in environment_settings(workers)]
     proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_profile.py"), "--device", device,
                            "--env", env, "--hidden", hidden, "--steps", str(steps), "--warmup", str(warmup),
-                           "--seeds", str(seeds), "--workers", processes, "--env-threads", threads or "auto",
-                           "--window", "0"],
+                           "--seeds", str(seeds), "--workers", settings[0], "--env-threads", settings[1],
+                           "--env-wait", settings[2], "--window", "0"],
                           capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise Failed(_last_line(proc.stderr))
@@ -373,7 +375,7 @@ def arguments() -> argparse.ArgumentParser:
                         help="learner.compile values of the group part: eager, and the update as CUDA graphs")
     parser.add_argument("--group-workers", default="auto",
                         help="env.workers values of the group part (0,auto: in the training process, and in workers), "
-                             "each with its env.threads after a colon if wanted (0:8, auto:2)")
+                             "each with its env.threads and env.wait after colons if wanted (0:8, auto:2, auto:0:spin)")
     parser.add_argument("--splits", default="1",
                         help="the group part's (and the targets' Hopper groups') seeds cut into this many groups "
                              "trained at once, each a process on its share of the cores (1: one group; 1,2,4)")

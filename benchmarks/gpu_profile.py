@@ -13,6 +13,7 @@ goes when the host, not the GPU, sets a group's pace.
     python benchmarks/gpu_profile.py                                   # one HalfCheetah-v5 seed, 256-256
     python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto
     python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers 0 --env-threads 8
+    python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto --env-wait sleep
     python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto --window 0 \
         --pystats host.txt
     python benchmarks/gpu_profile.py --device cpu --steps 1600 --window 50   # checks the script on a CPU
@@ -72,7 +73,8 @@ def profiled(args: argparse.Namespace, tmp: Path, host: cProfile.Profile | None 
         progress.Progress.advance = stepped  # type: ignore[method-assign,assignment]
         try:
             layered(["train", str(recipe), "--seeds", str(args.seeds), "--device", args.device,
-                     "--out", str(tmp / "runs"), f"env.workers={args.workers}", f"env.threads={args.env_threads}"])
+                     "--out", str(tmp / "runs"), f"env.workers={args.workers}", f"env.threads={args.env_threads}",
+                     f"env.wait={args.env_wait}"])
         finally:
             progress.Progress.advance = advance  # type: ignore[method-assign]
     return [b - a for a, b in zip(stamps[first:wait], stamps[first + 1:wait], strict=False)], prof
@@ -95,6 +97,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=1)
     parser.add_argument("--workers", default="0", help="env.workers (0: in this process; auto)")
     parser.add_argument("--env-threads", default="auto", help="env.threads (threads stepping the rows per process)")
+    parser.add_argument("--env-wait", default="auto", help="env.wait (how the workers and the group wait: sleep, spin)")
     parser.add_argument("--steps", type=int, default=2400)
     parser.add_argument("--warmup", type=int, default=1000)
     parser.add_argument("--window", type=int, default=200, help="steps the profiler records, at the end (0: none)")

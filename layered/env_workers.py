@@ -4,7 +4,9 @@ Each worker owns a contiguous slice of the rows, made and stepped by the same fu
 process (`layered.env_group`), so a group's numbers do not depend on where its rows step. Actions, row
 masks, observations, rewards and flags pass through arrays in shared memory; a pipe per worker carries
 one short command per step, and snapshots at checkpoints. The workers step while the caller does other
-work between `step_async` and `step_wait` (a group queues its update there).
+work between `step_async` and `step_wait` (a group queues its update there). Each side waits for the other
+asleep in its pipe, or, where cores are to spare, spinning on it (`spins`): a sleeping process's wake-up
+is most of a step's hand-over.
 
 Workers ignore SIGINT (a Ctrl-C at the terminal reaches the whole process group; the training process
 decides what it means) and end when their pipe closes, so none outlives the process that started it.
@@ -16,7 +18,9 @@ import ctypes
 import itertools
 import multiprocessing
 import pickle
+import select
 import signal
+import time
 import traceback
 from collections.abc import Sequence
 from multiprocessing.connection import Connection
@@ -29,6 +33,10 @@ from layered.env_group import EnvGroup, Envs, RowThreads, StepResult, reset_rows
 from layered.envs import env_spaces, make_env, restore_env, snapshot_env
 
 WorkersSetting = int | Literal["auto"]
+WaitSetting = Literal["auto", "sleep", "spin"]
+SPIN_SECONDS = 0.01
+"""How long a spinning side polls its pipe before it sleeps in it: longer than a group's training step on a GPU,
+shorter than an evaluation or a checkpoint, during which the training's workers sleep."""
 
 
 class EnvWorkerError(RuntimeError):
@@ -65,13 +73,29 @@ def thread_count(setting: WorkersSetting, rows: int, workers: int, evaluation: b
     return 0 if workers else 1
 
 
+def spins(setting: WaitSetting, workers: int, threads: int, gpu: bool, cores: int | None = None) -> bool:
+    """Whether the training process and its `workers` (each stepping its rows in `threads` threads) wait for each
+    other spinning rather than asleep: `setting` itself, or for `auto` where the learners are on a GPU (the
+    training process's cores are free while they compute) and every process that spins or steps has a core of
+    its own with one to spare. On a CPU the learners need the cores a spinning side would take."""
+    if not workers or setting == "sleep":
+        return False
+    if setting == "spin":
+        return True
+    cores = usable_cores() if cores is None else cores
+    return gpu and workers * max(threads, 1) + 1 < cores
+
+
 def open_envs(env_id: str, rows: int, workers: WorkersSetting, threads: WorkersSetting = 0,
-              evaluation: bool = False) -> Envs:
+              evaluation: bool = False, wait: WaitSetting = "sleep", gpu: bool = False) -> Envs:
     """`rows` environments of `env_id` (for training, or for an `evaluation`), in `worker_count(workers, rows)`
-    worker processes (none: in this one), each stepping its rows in `thread_count(threads, ...)` threads."""
+    worker processes (none: in this one), each stepping its rows in `thread_count(threads, ...)` threads, the
+    processes waiting for each other as `spins(wait, ..., gpu)` says (`gpu`: the learners are on one)."""
     count = worker_count(workers, rows)
     each = thread_count(threads, rows, count, evaluation, env_spaces(env_id).parallel)
-    return EnvWorkers(env_id, rows, count, each) if count else EnvGroup(env_id, rows, each)
+    if not count:
+        return EnvGroup(env_id, rows, each)
+    return EnvWorkers(env_id, rows, count, each, spins(wait, count, each, gpu))
 
 
 def _context() -> Any:
@@ -118,10 +142,12 @@ class _Shared:
 
 
 class EnvWorkers(Envs):
-    """K environments stepped in `workers` processes, rows split into contiguous slices (`Envs`)."""
+    """K environments stepped in `workers` processes, rows split into contiguous slices (`Envs`); with `spin`, the
+    workers and this process poll their pipes for `SPIN_SECONDS` before they sleep in them."""
 
-    def __init__(self, env_id: str, rows: int, workers: int, threads: int = 0) -> None:
+    def __init__(self, env_id: str, rows: int, workers: int, threads: int = 0, spin: bool = False) -> None:
         self.env_id = env_id
+        self.spin = spin
         self.observation_space, self.action_space = spaces(env_spaces(env_id))  # (read once per process)
         context = _context()
         self._shared = _Shared(rows, self.observation_space.shape[0], self.action_space.shape[0], context)
@@ -129,17 +155,19 @@ class EnvWorkers(Envs):
         bounds = np.linspace(0, rows, workers + 1).round().astype(int).tolist()
         self._slices = [slice(a, b) for a, b in itertools.pairwise(bounds)]
         self._pipes: list[Connection] = []
+        self._answers: list[select.poll] = []  # (for each pipe, whether its answer is there)
         self._processes = []
         self._asked: list[int] = []
         self.stepping = workers * max(threads, 1)
         try:
             for part in self._slices:
                 mine, theirs = context.Pipe()
-                process = context.Process(target=_serve, args=(theirs, env_id, part, threads, self._shared),
+                process = context.Process(target=_serve, args=(theirs, env_id, part, threads, self._shared, spin),
                                           daemon=True, name=f"layered-envs-{part.start}-{part.stop - 1}")
                 process.start()
                 theirs.close()
                 self._pipes.append(mine)
+                self._answers.append(_poller(mine))
                 self._processes.append(process)
             self._asked = list(range(len(self._slices)))
             self._collect()  # each worker has made its environments
@@ -190,7 +218,7 @@ class EnvWorkers(Envs):
                 process.join()
         for pipe in self._pipes:
             pipe.close()
-        self._pipes, self._processes, self._asked = [], [], []
+        self._pipes, self._answers, self._processes, self._asked = [], [], [], []
 
     def _ask(self, command: str, per_row: list[Any] | None, rows: np.ndarray | None = None) -> None:
         """Send `command` to every worker (with `rows`, those holding a row of the mask), with its slice of
@@ -207,6 +235,8 @@ class EnvWorkers(Envs):
         """The answers of the workers last asked, in their order; an EnvWorkerError for the first that failed."""
         answers, failure = [], None
         for w in self._asked:
+            if self.spin:
+                _poll(self._answers[w])
             try:
                 ok, answer = pickle.loads(self._pipes[w].recv_bytes())
             except (EOFError, OSError):
@@ -225,17 +255,35 @@ class EnvWorkers(Envs):
         return f"the worker process stepping {rows} ended unexpectedly"
 
 
-def _serve(pipe: Connection, env_id: str, part: slice, threads: int, shared: _Shared) -> None:
+def _poller(pipe: Connection) -> select.poll:
+    """Something that tells at once whether `pipe` has something to read (or has closed)."""
+    poller = select.poll()
+    poller.register(pipe.fileno(), select.POLLIN)
+    return poller
+
+
+def _poll(poller: select.poll) -> None:
+    """Spin until `poller`'s pipe has something to read, for `SPIN_SECONDS` at most (the read that follows sleeps
+    until then)."""
+    until = time.perf_counter() + SPIN_SECONDS
+    while not poller.poll(0) and time.perf_counter() < until:
+        pass
+
+
+def _serve(pipe: Connection, env_id: str, part: slice, threads: int, shared: _Shared, spin: bool = False) -> None:
     """A worker: make the environments of rows `part` and carry out the group's commands on them, its steps
-    in `threads` threads."""
+    in `threads` threads, waiting for each spinning on its pipe with `spin`."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     envs: list[Any] = []
     stepping: RowThreads | None = None
     try:
         envs = [make_env(env_id) for _ in range(part.start, part.stop)]
         stepping = RowThreads(envs, threads)
+        commands = _poller(pipe)
         pipe.send_bytes(pickle.dumps((True, None)))
         while True:
+            if spin:
+                _poll(commands)
             command, argument = pickle.loads(pipe.recv_bytes())
             if command == "close":
                 return

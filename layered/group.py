@@ -336,7 +336,8 @@ class Group:
     def _stacks(self, phase: Phase, evaluation: bool, lanes: int = 1) -> Stacks:
         """The phase's stacks (`open_stacks`) over `lanes` rows per seed (seed k's lane l is row k * lanes + l: an
         evaluation plays several episodes of a seed side by side)."""
-        return open_stacks(self.recipe, phase.active, self.rows * lanes, evaluation)
+        gpu = next(iter(self.learners.values())).device.type == "cuda"
+        return open_stacks(self.recipe, phase.active, self.rows * lanes, evaluation, gpu=gpu)
 
     def _evaluator(self, phase: Phase, episodes: int) -> Stacks:
         """The stacks that play `episodes` evaluation episodes per seed, as many side by side as `eval_lanes` says."""

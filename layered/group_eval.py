@@ -37,11 +37,13 @@ def eval_lanes(episodes: int, seeds: int) -> int:
 
 
 def open_stacks(recipe: Recipe, active: Sequence[str], rows: int, evaluation: bool,
-                workers: WorkersSetting | None = None) -> Stacks:
+                workers: WorkersSetting | None = None, gpu: bool = False) -> Stacks:
     """The stack of the `active` layers, its rules over `rows` rows and their environments (for training, or for
-    an `evaluation`), stepped in `workers` processes (default: the recipe's `env.workers`)."""
+    an `evaluation`), stepped in `workers` processes (default: the recipe's `env.workers`; `gpu`: the learners
+    are on one, for `env.wait`)."""
     env = recipe.env
-    envs = open_envs(env.id, rows, env.workers if workers is None else workers, env.threads, evaluation)
+    envs = open_envs(env.id, rows, env.workers if workers is None else workers, env.threads, evaluation, env.wait,
+                     gpu)
     return stacks_over(recipe, active, envs, evaluation)
 
 

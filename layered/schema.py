@@ -49,6 +49,11 @@ class EnvConfig(Section):
     process's own thread. `auto`: while training, one in the training process (the rows step beside the
     update) where it has 2 cores or more, and none in workers; for evaluations of Gymnasium's MuJoCo tasks,
     the cores shared out among the processes that step the rows. Where they step changes no number."""
+    wait: Literal["auto", "sleep", "spin"] = "auto"
+    """How a group's training process and its environment workers wait for each other: `sleep` in their pipes
+    (no core used meanwhile), `spin` polling them (an answer within microseconds, a core kept busy by each
+    waiting process); `auto` spins where the learners are on a GPU and each worker and the training process
+    has a core of its own with one to spare, else sleeps. How they wait changes no number."""
 
     @field_validator("workers", "threads", mode="before")
     @classmethod

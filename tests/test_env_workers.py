@@ -4,6 +4,7 @@ a thread's failure is the group's error."""
 
 import os
 import signal
+import time
 
 import numpy as np
 import torch
@@ -12,7 +13,7 @@ import pytest
 from layered import cores
 from layered.env_group import EnvGroup
 from layered.group_eval import torch_aside
-from layered.env_workers import EnvWorkerError, EnvWorkers, open_envs, thread_count, worker_count
+from layered.env_workers import SPIN_SECONDS, EnvWorkerError, EnvWorkers, open_envs, spins, thread_count, worker_count
 
 ENV = "Hopper-v5"  # episodes of different lengths, and a MuJoCo state in every snapshot
 
@@ -46,6 +47,33 @@ def test_how_many_workers_step_the_rows(setting, rows, cores, expected):
 ])
 def test_how_many_threads_step_a_process_rows(setting, rows, workers, evaluation, parallel, cores, expected):
     assert thread_count(setting, rows, workers, evaluation, parallel, cores) == expected
+
+
+@pytest.mark.parametrize("setting, workers, threads, gpu, cores, expected", [
+    ("auto", 8, 0, True, 16, True),  # learners on a GPU, a core for each worker and the training process, and more
+    ("auto", 8, 0, False, 16, False),  # learners on the CPU: its cores are theirs
+    ("auto", 2, 0, True, 3, False),  # no core to spare
+    ("auto", 2, 0, True, 4, True),
+    ("auto", 8, 2, True, 16, False),  # two threads stepping in each worker: every core busy
+    ("auto", 0, 0, True, 16, False),  # no workers: nothing to wait for
+    ("spin", 8, 0, False, 2, True),  # a setting is taken as given
+    ("spin", 0, 0, True, 16, False),
+    ("sleep", 8, 0, True, 16, False),
+])
+def test_when_the_training_process_and_its_workers_spin(setting, workers, threads, gpu, cores, expected):
+    assert spins(setting, workers, threads, gpu, cores) == expected
+
+
+def test_open_envs_spins_as_the_setting_and_the_learners_device_say():
+    envs = [open_envs("Pendulum-v1", 2, 1, wait="spin"), open_envs("Pendulum-v1", 2, 1, wait="auto"),
+            open_envs("Pendulum-v1", 2, 0, wait="spin")]
+    try:
+        assert isinstance(envs[0], EnvWorkers) and envs[0].spin
+        assert isinstance(envs[1], EnvWorkers) and not envs[1].spin  # the learners on the CPU
+        assert isinstance(envs[2], EnvGroup)  # no workers
+    finally:
+        for each in envs:
+            each.close()
 
 
 def test_a_process_given_a_share_of_the_cores_counts_those_alone(monkeypatch):
@@ -143,8 +171,8 @@ def test_rows_stepped_in_threads_of_workers_give_what_they_give_here():
 
 
 @pytest.mark.parametrize("make", [lambda: EnvGroup(ENV, 5), lambda: EnvGroup(ENV, 5, 2), lambda: EnvWorkers(ENV, 5, 2),
-                                  lambda: EnvWorkers(ENV, 5, 2, threads=2)],
-                         ids=["here", "threads", "workers", "threads-of-workers"])
+                                  lambda: EnvWorkers(ENV, 5, 2, threads=2), lambda: EnvWorkers(ENV, 5, 2, spin=True)],
+                         ids=["here", "threads", "workers", "threads-of-workers", "spinning-workers"])
 def test_a_step_that_restarts_ended_episodes_gives_what_a_step_and_a_reset_give(make):
     alone, restarting = EnvGroup(ENV, 5), make()
     try:
@@ -191,8 +219,9 @@ def test_a_step_can_be_collected_after_other_work(make):
         envs.close()
 
 
-def test_a_failure_in_a_worker_is_raised_with_its_traceback_and_a_dead_worker_is_named():
-    envs = EnvWorkers(ENV, 3, 2)
+@pytest.mark.parametrize("spin", [False, True], ids=["sleeping", "spinning"])
+def test_a_failure_in_a_worker_is_raised_with_its_traceback_and_a_dead_worker_is_named(spin):
+    envs = EnvWorkers(ENV, 3, 2, spin=spin)
     processes = list(envs._processes)
     try:
         with pytest.raises(EnvWorkerError, match="Traceback"):
@@ -204,6 +233,29 @@ def test_a_failure_in_a_worker_is_raised_with_its_traceback_and_a_dead_worker_is
     finally:
         envs.close()
     assert not any(process.is_alive() for process in processes)
+
+
+def test_spinning_workers_sleep_when_nothing_comes_and_answer_when_woken():
+    envs = EnvWorkers("Pendulum-v1", 2, 2, spin=True)
+    processes = list(envs._processes)
+    try:
+        envs.reset(np.ones(2, bool), [0, 1])
+        assert SPIN_SECONDS < 0.3
+        time.sleep(0.3)  # longer than they spin
+        used = [cpu_seconds(process.pid) for process in processes]
+        time.sleep(0.3)
+        assert all(cpu_seconds(process.pid) - u < 0.1 for process, u in zip(processes, used, strict=True))  # asleep
+        reward, _, _ = envs.step(np.zeros((2, 1), np.float32), np.ones(2, bool))
+        assert (reward < 0).all()
+    finally:
+        envs.close()
+    assert not any(process.is_alive() for process in processes)
+
+
+def cpu_seconds(pid: int) -> float:
+    """The CPU time a process has used, from /proc (user and system)."""
+    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def test_workers_ignore_a_ctrl_c_at_the_terminal_and_are_gone_after_close():

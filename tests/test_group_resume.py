@@ -64,14 +64,15 @@ def test_a_group_stopped_mid_episode_resumes_to_the_same_files(recipe, overrides
     assert_same_group(tmp_path / "whole", out, (0, 3))
 
 
+@pytest.mark.parametrize("wait", ["sleep", "spin"])
 def test_a_group_stepping_its_environments_in_workers_and_threads_writes_the_files_of_one_stepping_them_here(
-        tmp_path, monkeypatch):
+        tmp_path, monkeypatch, wait):
     command = ["train", str(ROOT / "recipes/inverted-double-pendulum/tla-realtime.toml"), "--seeds", "0,3,4",
                "--steps", "300", *TINY]
     assert main([*command, "env.workers=0", "env.threads=0", "--out", str(tmp_path / "here")]) == 0
     out = tmp_path / "workers"
     stop_at(monkeypatch, [(0, 101), (1, 151)])  # snapshots taken in the workers, restored in new ones
-    assert main([*command, "env.workers=2", "env.threads=2", "--out", str(out)]) == 130
+    assert main([*command, "env.workers=2", "env.threads=2", f"env.wait={wait}", "--out", str(out)]) == 130
     assert main(["resume", str(out)]) == 130
     monkeypatch.undo()
     assert main(["resume", str(out)]) == 0

@@ -108,6 +108,7 @@ class ChoiceLearnerGroup(ABC):
         self.values = np.array([first.encode(index) for index in range(self.choice.n)], np.float32)
         self.rng = np.random.default_rng([seed, 1])
         self.k = self.td3.k
+        self.device = self.td3.device
 
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         """[K, action + 1]: each seed's TD3 action and its choice (epsilon-greedy with `explore`)."""
