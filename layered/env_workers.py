@@ -156,7 +156,7 @@ class EnvWorkers(Envs):
         bounds = np.linspace(0, rows, workers + 1).round().astype(int).tolist()
         self._slices = [slice(a, b) for a, b in itertools.pairwise(bounds)]
         self._pipes: list[Connection] = []
-        self._answers: list[select.poll] = []  # (for each pipe, whether its answer is there)
+        self._answers: list[select.poll] = []  # (spinning: for each pipe, whether its answer is there)
         self._processes = []
         self._asked: list[int] = []
         self.stepping = workers * max(threads, 1)
@@ -168,7 +168,8 @@ class EnvWorkers(Envs):
                 process.start()
                 theirs.close()
                 self._pipes.append(mine)
-                self._answers.append(_poller(mine))
+                if spin:
+                    self._answers.append(_poller(mine))
                 self._processes.append(process)
             self._asked = list(range(len(self._slices)))
             self._collect()  # each worker has made its environments
@@ -281,10 +282,10 @@ def _serve(pipe: Connection, env_id: str, part: slice, threads: int, shared: _Sh
     try:
         envs = [make_env(env_id) for _ in range(part.start, part.stop)]
         stepping = RowThreads(envs, threads)
-        commands = _poller(pipe)
+        commands = _poller(pipe) if spin else None
         pipe.send_bytes(pickle.dumps((True, None)))
         while True:
-            if spin:
+            if commands is not None:
                 _poll(commands)
             command, argument = pickle.loads(pipe.recv_bytes())
             if command == "close":
