@@ -8,7 +8,10 @@ operations (CPU time), in tables; writes the window's trace (Chrome format, gzip
 `--trace`. With `--window 0` nothing is profiled: the steps are timed alone (`gpu.py --parts targets`
 takes a group of one's rate so). With `--pystats FILE` the training process's Python functions are profiled
 (`cProfile`) over the timed steps, which it slows, and their totals written to FILE: where the host's time
-goes when the host, not the GPU, sets a group's pace.
+goes when the host, not the GPU, sets a group's pace. With `--recipe`, a recipe of your own instead, its layers'
+warm-ups set with `--set` (`--warmup` is then where its last phase's updates begin, for the timing): the steps
+timed and profiled are its last phase's (a real-time TLA's fast phase, both layers acting and the fast one
+learning).
 
     python benchmarks/gpu_profile.py                                   # one HalfCheetah-v5 seed, 256-256
     python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto
@@ -16,6 +19,8 @@ goes when the host, not the GPU, sets a group's pace.
     python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto --env-wait sleep
     python benchmarks/gpu_profile.py --env Hopper-v5 --hidden 400,300 --seeds 32 --workers auto --window 0 \
         --pystats host.txt
+    python benchmarks/gpu_profile.py --recipe recipes/hopper/tla-realtime.toml --seeds 32 --workers auto --window 0 \
+        --set layers.slow.warmup=500 --set layers.fast.warmup=1000 --pystats host.txt
     python benchmarks/gpu_profile.py --device cpu --steps 1600 --window 50   # checks the script on a CPU
 """
 
@@ -48,12 +53,16 @@ from layered.cli import main as layered
 
 def profiled(args: argparse.Namespace, tmp: Path, host: cProfile.Profile | None = None
              ) -> tuple[list[float], torch.profiler.profile | None]:
-    """Train the group; the times between its steps, and the profiler that recorded the last `--window` steps
-    (None for a window of none). `host`, where given, profiles the Python functions over the timed steps."""
-    recipe = tmp / "td3.toml"
+    """Train the group; the times between its last phase's steps, and the profiler that recorded that phase's last
+    `--window` steps (None for a window of none). `host`, where given, profiles the Python functions over the
+    timed steps."""
     mode = "cudagraphs" if args.device == "cuda" else "off"
-    recipe.write_text(tomli_w.dumps(td3_recipe(args.env, args.hidden, args.steps, args.warmup, 10 * args.steps,
-                                               compile=mode)))
+    recipe = args.recipe or tmp / "td3.toml"
+    if args.recipe is None:
+        recipe.write_text(tomli_w.dumps(td3_recipe(args.env, args.hidden, args.steps, args.warmup, 10 * args.steps,
+                                                   compile=mode)))
+    settings = ([] if args.recipe is None else  # (its evaluations, and the checkpoints with them, beyond the run)
+                ["--steps", str(args.steps), f"learner.compile={mode}", f"eval.every={10 * args.steps}", *args.set])
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if args.device == "cuda" else [])
     wait = args.steps - args.window - 20 if args.window else args.steps
     first = args.warmup + (wait - args.warmup) // 4  # (the first updates capture their graphs)
@@ -64,6 +73,8 @@ def profiled(args: argparse.Namespace, tmp: Path, host: cProfile.Profile | None 
     with window as prof:
         def stepped(bar: progress.Progress, steps: int) -> None:
             advance(bar, steps)
+            if bar.later:
+                return  # (a phase before the last)
             if prof is not None:
                 prof.step()
             stamps.append(time.perf_counter())
@@ -74,7 +85,7 @@ def profiled(args: argparse.Namespace, tmp: Path, host: cProfile.Profile | None 
         try:
             layered(["train", str(recipe), "--seeds", str(args.seeds), "--device", args.device,
                      "--out", str(tmp / "runs"), f"env.workers={args.workers}", f"env.threads={args.env_threads}",
-                     f"env.wait={args.env_wait}"])
+                     f"env.wait={args.env_wait}", *settings])
         finally:
             progress.Progress.advance = advance  # type: ignore[method-assign]
     return [b - a for a, b in zip(stamps[first:wait], stamps[first + 1:wait], strict=False)], prof
@@ -92,6 +103,9 @@ def python_totals(host: cProfile.Profile, steps: int) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cuda")
+    parser.add_argument("--recipe", type=Path, help="a recipe to time instead of the benchmark's TD3 (its last phase)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a setting of --recipe's (repeatable)")
     parser.add_argument("--env", default="HalfCheetah-v5")
     parser.add_argument("--hidden", default="256,256")
     parser.add_argument("--seeds", type=int, default=1)
@@ -117,7 +131,8 @@ def main() -> None:
     if host is not None:
         args.pystats.write_text(python_totals(host, len(gaps)))
     deciles = statistics.quantiles(gaps, n=10)
-    print(f"\n{args.seeds} seed(s) of TD3 ({args.hidden}) on {args.env}, {args.device}: a training step took a median "
+    what = f"TD3 ({args.hidden}) on {args.env}" if args.recipe is None else f"{args.recipe}, its last phase"
+    print(f"\n{args.seeds} seed(s) of {what}, {args.device}: a training step took a median "
           f"of {statistics.median(gaps) * 1e3:.3f} ms (p90 {deciles[-1] * 1e3:.3f} ms) over {len(gaps)} steps, "
           f"{args.seeds / statistics.median(gaps):,.0f} aggregate steps/s\n")
     if prof is None:
