@@ -4,6 +4,8 @@ a thread's failure is the group's error."""
 
 import os
 import signal
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -256,6 +258,35 @@ def cpu_seconds(pid: int) -> float:
     """The CPU time a process has used, from /proc (user and system)."""
     fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@pytest.mark.parametrize("spin", [False, True], ids=["sleeping", "spinning"])
+def test_workers_end_when_the_process_that_started_them_is_killed(spin):
+    starter = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\n"
+        "from layered.env_workers import EnvWorkers\n"
+        f"envs = EnvWorkers('Pendulum-v1', 2, 2, spin={spin})\n"
+        "print(*[process.pid for process in envs._processes], flush=True)\n"
+        "time.sleep(60)\n")], stdout=subprocess.PIPE, text=True)
+    try:
+        pids = [int(pid) for pid in starter.stdout.readline().split()]
+        assert len(pids) == 2 and all(alive(pid) for pid in pids)
+        starter.kill()
+        starter.wait()
+        until = time.monotonic() + 10
+        while any(alive(pid) for pid in pids) and time.monotonic() < until:
+            time.sleep(0.05)
+        assert not any(alive(pid) for pid in pids)
+    finally:
+        starter.kill()
+
+
+def alive(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie, ended but not yet reaped, does not)."""
+    try:
+        return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
 
 
 def test_workers_ignore_a_ctrl_c_at_the_terminal_and_are_gone_after_close():
