@@ -94,9 +94,17 @@ class LoopState:
         return cls(**data, pending={name: PendingLosses() for name in data["losses"]})
 
 
+UNDIGESTED = {"env": ("wait",)}
+"""Settings a recipe's digest leaves out: how a group's environment processes wait for each other changes no
+number, and a run checkpointed before the setting existed resumes with it."""
+
+
 def recipe_digest(resolved_recipe: dict[str, Any]) -> str:
-    """A fingerprint of a resolved recipe, stable across key order."""
-    return hashlib.sha256(json.dumps(resolved_recipe, sort_keys=True).encode()).hexdigest()
+    """A fingerprint of a resolved recipe (but its `UNDIGESTED` settings), stable across key order."""
+    kept = {section: ({key: value for key, value in settings.items() if key not in UNDIGESTED[section]}
+                      if section in UNDIGESTED and isinstance(settings, dict) else settings)
+            for section, settings in resolved_recipe.items()}
+    return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
 
 
 def recipe_differences(saved: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:

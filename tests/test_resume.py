@@ -1,6 +1,9 @@
 """Runs that survive anything: killed or stopped at any moment, a resumed run ends byte for byte
 as one that never stopped; changed recipes, changed budgets and damaged checkpoints are refused."""
 
+import copy
+import hashlib
+import json
 import os
 import random
 import shutil
@@ -23,7 +26,7 @@ from layered.checkpoint import CheckpointError, load_checkpoint, previous, save_
 from layered.learner_set import build_learners
 from layered.recipe import resolved
 from layered.replay_journal import ReplayJournal, replay_folder
-from layered.runstate import load_state
+from layered.runstate import load_state, recipe_digest
 from layered.interrupt import Stopped
 from layered.rundir import RunDirError, read_run_info, writer
 from layered.runs import resume, train
@@ -32,6 +35,20 @@ from layered.errors import Diverged
 PENDULUM = Path(__file__).parent.parent / "recipes" / "pendulum"
 TINY = ["learner.hidden=[32, 32]", "learner.batch_size=32", "train.warmup=50",
         "eval.every=150", "eval.episodes=1", "eval.fresh_episodes=2"]
+
+
+def test_a_recipes_digest_leaves_out_how_the_environments_processes_wait_and_nothing_else():
+    recipe = resolved(load_recipe(PENDULUM / "tla-c.toml"))
+    earlier = copy.deepcopy(recipe)
+    del earlier["env"]["wait"]  # as versions before the setting resolved it, and digested it whole:
+    assert recipe_digest(recipe) == hashlib.sha256(json.dumps(earlier, sort_keys=True).encode()).hexdigest()
+    spinning = copy.deepcopy(recipe)
+    spinning["env"]["wait"] = "spin"
+    assert recipe_digest(spinning) == recipe_digest(recipe)
+    for section, key, value in (("env", "workers", 3), ("env", "threads", 2), ("train", "seed", 7)):
+        other = copy.deepcopy(recipe)
+        other[section][key] = value
+        assert recipe_digest(other) != recipe_digest(recipe), f"{section}.{key}"
 
 
 def test_a_run_stopped_at_an_episode_end_resumes_to_the_same_files(tmp_path, monkeypatch):
