@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -256,7 +257,7 @@ def test_spinning_workers_sleep_when_nothing_comes_and_answer_when_woken():
 
 def cpu_seconds(pid: int) -> float:
     """The CPU time a process has used, from /proc (user and system)."""
-    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
@@ -284,7 +285,7 @@ def test_workers_end_when_the_process_that_started_them_is_killed(spin):
 def alive(pid: int) -> bool:
     """Whether process `pid` runs (a zombie, ended but not yet reaped, does not)."""
     try:
-        return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z"
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
     except FileNotFoundError:
         return False
 
