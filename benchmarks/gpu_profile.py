@@ -57,12 +57,13 @@ def profiled(args: argparse.Namespace, tmp: Path, host: cProfile.Profile | None 
     `--window` steps (None for a window of none). `host`, where given, profiles the Python functions over the
     timed steps."""
     mode = "cudagraphs" if args.device == "cuda" else "off"
-    recipe = args.recipe or tmp / "td3.toml"
     if args.recipe is None:
+        recipe, settings = tmp / "td3.toml", []
         recipe.write_text(tomli_w.dumps(td3_recipe(args.env, args.hidden, args.steps, args.warmup, 10 * args.steps,
                                                    compile=mode)))
-    settings = ([] if args.recipe is None else  # (its evaluations, and the checkpoints with them, beyond the run)
-                ["--steps", str(args.steps), f"learner.compile={mode}", f"eval.every={10 * args.steps}", *args.set])
+    else:  # (its evaluations, and the checkpoints with them, beyond the run)
+        recipe = args.recipe
+        settings = ["--steps", str(args.steps), f"learner.compile={mode}", f"eval.every={10 * args.steps}", *args.set]
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if args.device == "cuda" else [])
     wait = args.steps - args.window - 20 if args.window else args.steps
     first = args.warmup + (wait - args.warmup) // 4  # (the first updates capture their graphs)

@@ -101,9 +101,9 @@ number, and a run checkpointed before the setting existed resumes with it."""
 
 def recipe_digest(resolved_recipe: dict[str, Any]) -> str:
     """A fingerprint of a resolved recipe (but its `UNDIGESTED` settings), stable across key order."""
-    kept = {section: ({key: value for key, value in settings.items() if key not in UNDIGESTED[section]}
-                      if section in UNDIGESTED and isinstance(settings, dict) else settings)
-            for section, settings in resolved_recipe.items()}
+    kept = dict(resolved_recipe)
+    for section, keys in UNDIGESTED.items():
+        kept[section] = {key: value for key, value in kept[section].items() if key not in keys}
     return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
 
 
