@@ -41,8 +41,9 @@ from layered.runstate import LoopState, load_state, recipe_differences, recipe_d
 from layered.trainer import Training, phase_budget, train_phases
 
 
-CHANGEABLE = re.compile(r"layers\[\d+\]\.(learner\.(?!kind$)\w+|action_penalty|updates)$")
-"""The resolved recipe's keys a resumed run may change (`layered resume --set`)."""
+CHANGEABLE = re.compile(r"layers\[\d+\]\.(learner\.(?!kind$)\w+|action_penalty|updates)$|env\.(workers|threads|wait)$")
+"""The resolved recipe's keys a resumed run may change (`layered resume --set`): a layer's learning, and where and how
+a group's environments step, which changes no number (a group moved to a machine with other cores)."""
 
 
 def unavailable_settings(recipe: Recipe) -> list[tuple[str, str]]:
@@ -200,7 +201,8 @@ def changed_recipe(run_dir: Path, settings: Sequence[str], where: Path | None = 
     fixed = [d.split(":")[0] for d in differences if not CHANGEABLE.match(d.split(":")[0])]
     if fixed:
         raise RunDirError(f"{where}: a resumed run may change a layer's learner settings (not its kind), "
-                          f"action_penalty and updates, not {', '.join(fixed)}")
+                          f"action_penalty and updates, and how a group's environments step (env.workers, env.threads, "
+                          f"env.wait), not {', '.join(fixed)}")
     return recipe, Change(before, tuple(settings), tuple(differences))
 
 

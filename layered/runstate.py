@@ -99,12 +99,17 @@ UNDIGESTED = {"env": ("wait",)}
 number, and a run checkpointed before the setting existed resumes with it."""
 
 
-def recipe_digest(resolved_recipe: dict[str, Any]) -> str:
-    """A fingerprint of a resolved recipe (but its `UNDIGESTED` settings), stable across key order."""
+def digested(resolved_recipe: dict[str, Any]) -> dict[str, Any]:
+    """A resolved recipe without its `UNDIGESTED` settings: what a checkpoint must have been taken with."""
     kept = dict(resolved_recipe)
     for section, keys in UNDIGESTED.items():
         kept[section] = {key: value for key, value in kept[section].items() if key not in keys}
-    return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
+    return kept
+
+
+def recipe_digest(resolved_recipe: dict[str, Any]) -> str:
+    """A fingerprint of a resolved recipe (but its `UNDIGESTED` settings), stable across key order."""
+    return hashlib.sha256(json.dumps(digested(resolved_recipe), sort_keys=True).encode()).hexdigest()
 
 
 def recipe_differences(saved: dict[str, Any], current: dict[str, Any], prefix: str = "") -> list[str]:
@@ -148,7 +153,7 @@ def load_state(path: Path, learners: dict[str, Learner], resolved_recipe: dict[s
     if saved is None:
         return None
     if saved["recipe_digest"] not in (recipe_digest(resolved_recipe), changed_from):
-        changes = recipe_differences(json.loads(saved["recipe"]), resolved_recipe)
+        changes = recipe_differences(digested(json.loads(saved["recipe"])), digested(resolved_recipe))
         raise CheckpointError(f"{path.parent.parent}: the recipe differs from the one the run was started with "
                               f"({'; '.join(changes[:3])}{'; ...' if len(changes) > 3 else ''})")
     if saved["max_steps"] != max_steps:

@@ -1,6 +1,7 @@
 """A group of seeds survives being stopped or killed: checkpointed at any step, mid-episode in every seed,
 it resumes to the very files of a group that never stopped."""
 
+import json
 import os
 import random
 import shutil
@@ -67,16 +68,23 @@ def test_a_group_stopped_mid_episode_resumes_to_the_same_files(recipe, overrides
 @pytest.mark.parametrize("wait", ["sleep", "spin"])
 def test_a_group_stepping_its_environments_in_workers_and_threads_writes_the_files_of_one_stepping_them_here(
         tmp_path, monkeypatch, wait):
+    """Also when it is resumed in fewer workers waiting the other way (`--set`, as on a machine with other cores):
+    snapshots taken in two workers are restored in one."""
     command = ["train", str(ROOT / "recipes/inverted-double-pendulum/tla-realtime.toml"), "--seeds", "0,3,4",
                "--steps", "300", *TINY]
     assert main([*command, "env.workers=0", "env.threads=0", "--out", str(tmp_path / "here")]) == 0
     out = tmp_path / "workers"
     stop_at(monkeypatch, [(0, 101), (1, 151)])  # snapshots taken in the workers, restored in new ones
     assert main([*command, "env.workers=2", "env.threads=2", f"env.wait={wait}", "--out", str(out)]) == 130
-    assert main(["resume", str(out)]) == 130
+    other = {"sleep": "spin", "spin": "sleep"}[wait]
+    assert main(["resume", str(out), "--set", "env.workers=1", "--set", f"env.wait={other}"]) == 130
     monkeypatch.undo()
     assert main(["resume", str(out)]) == 0
     assert_same_group(tmp_path / "here", out, (0, 3, 4))
+    changes = json.loads((out / "seed3" / "run.json").read_text())["changes"]
+    assert [(c["phase"], c["step"], c["differences"]) for c in changes] == [
+        (0, 101, [f"env.wait: {wait!r} -> {other!r}", "env.workers: 2 -> 1"])]
+    assert "workers = 1" in (out / "seed3" / "recipe.toml").read_text()
 
 
 def stopped_beside_whole(tmp_path, monkeypatch, moment):

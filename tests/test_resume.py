@@ -80,9 +80,9 @@ def test_resume_refuses_a_changed_recipe_or_budget_naming_the_difference(tmp_pat
     train_until_stopped(monkeypatch, recipe, tmp_path, 2, max_steps=700, progress=False)
     with pytest.raises(RunDirError, match="started with --steps 700, not --steps 900"):
         resume(tmp_path, max_steps=900)
-    changed = load_recipe(PENDULUM / "tla-c.toml", [*TINY, "train.warmup=60"])
-    with pytest.raises(CheckpointError, match=r"recipe differs .*train\.warmup: 50 -> 60"):
-        train(changed, tmp_path, max_steps=700, progress=False, resume=True)
+    changed = load_recipe(PENDULUM / "tla-c.toml", [*TINY, "train.warmup=60", "env.wait=spin"])
+    with pytest.raises(CheckpointError, match=r"recipe differs .*\(train\.warmup: 50 -> 60\)$"):
+        train(changed, tmp_path, max_steps=700, progress=False, resume=True)  # (env.wait changes no number)
     with pytest.raises(RunDirError, match="holds a stopped run; continue it with `layered resume"):
         train(recipe, tmp_path, max_steps=700, progress=False)
     resume(tmp_path, progress=False)
