@@ -204,22 +204,28 @@ def group(device: str, seeds: int, recipe: str | None, env: str, hidden: str, st
             "wall_seconds": wall, "mib_per_seed": None if total is None else total / seeds}
 
 
-def environment_settings(workers: str) -> list[str]:
-    """The recipe settings of a `--group-workers` value: `W` (env.workers, its threads and its wait `auto`), `W:T`
-    (and env.threads) or `W:T:WAIT` (and env.wait)."""
+def environment_values(workers: str) -> tuple[str, str, str]:
+    """env.workers, env.threads and env.wait of a `--group-workers` value: `W` (its threads and its wait `auto`),
+    `W:T` or `W:T:WAIT`."""
     processes, threads, wait = (*workers.split(":"), "", "")[:3]
-    return [f"env.workers={processes}", f"env.threads={threads or 'auto'}", f"env.wait={wait or 'auto'}"]
+    return processes, threads or "auto", wait or "auto"
+
+
+def environment_settings(workers: str) -> list[str]:
+    """The recipe settings of a `--group-workers` value (`environment_values`)."""
+    return [f"env.{key}={value}" for key, value in zip(("workers", "threads", "wait"), environment_values(workers),
+                                                         strict=True)]
 
 
 def training_steps(device: str, env: str, hidden: str, steps: int, warmup: int, seeds: int = 1, workers: str = "0"
                    ) -> float:
     """A group's aggregate steps/s over its training steps alone (its evaluations and checkpoints beyond the run),
     timed step by step by `gpu_profile.py --window 0` in a process of its own."""
-    settings = [setting.partition("=")[2] for setting in environment_settings(workers)]
+    processes, threads, wait = environment_values(workers)
     proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "gpu_profile.py"), "--device", device,
                            "--env", env, "--hidden", hidden, "--steps", str(steps), "--warmup", str(warmup),
-                           "--seeds", str(seeds), "--workers", settings[0], "--env-threads", settings[1],
-                           "--env-wait", settings[2], "--window", "0"],
+                           "--seeds", str(seeds), "--workers", processes, "--env-threads", threads,
+                           "--env-wait", wait, "--window", "0"],
                           capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise Failed(_last_line(proc.stderr))
