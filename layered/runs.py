@@ -44,6 +44,8 @@ from layered.trainer import Training, phase_budget, train_phases
 CHANGEABLE = re.compile(r"layers\[\d+\]\.(learner\.(?!kind$)\w+|action_penalty|updates)$|env\.(workers|threads|wait)$")
 """The resolved recipe's keys a resumed run may change (`layered resume --set`): a layer's learning, and where and how
 a group's environments step, which changes no number (a group moved to a machine with other cores)."""
+GROUP_ONLY = ("env.workers", "env.wait")
+"""Of those, the keys that change nothing in a single run: it steps its environment in its own process."""
 
 
 def unavailable_settings(recipe: Recipe) -> list[tuple[str, str]]:
@@ -186,6 +188,10 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
         raise RunDirError(f"{run_dir}: the run was started with {steps_option(info.max_steps)}, not "
                           f"{steps_option(max_steps)}")
     recipe, change = changed_recipe(run_dir, settings) if settings else (load_recipe(run_dir / "recipe.toml"), None)
+    if change is not None and (inert := [d.split(":")[0] for d in change.differences
+                                         if d.split(":")[0] in GROUP_ONLY]):
+        raise RunDirError(f"{run_dir}: a single run steps its environment in its own process, so {' and '.join(inert)} "
+                          "change nothing in it (they set how a group's environments step)")
     return train(recipe, run_dir, info.max_steps, progress, info.label, resume=True, plugins=info.plugins,
                  change=change)
 

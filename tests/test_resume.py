@@ -171,7 +171,9 @@ def test_divergence_stops_naming_layer_phase_and_step_and_keeps_the_last_checkpo
     assert str(diverged.value).endswith(way_on)
     monkeypatch.undo()
     for settings, why in ((["env.id=Hopper-v5"], "not env.id"), (["layers.fast.learner.hidden=[8]"], "does not fit"),
-                          (["layers.fast.learner.lr=3e-4"], "changes nothing")):
+                          (["layers.fast.learner.lr=3e-4"], "changes nothing"),
+                          (["layers.fast.learner.lr=1e-4", "env.workers=2", "env.wait=spin"],
+                           "so env.wait and env.workers change nothing in it")):
         with pytest.raises(RunDirError, match=why):
             resume(tmp_path, progress=False, settings=settings)
     resume(tmp_path, progress=False, settings=["layers.fast.learner.lr=1e-4"])  # from the last checkpoint
