@@ -173,3 +173,13 @@ def test_extends_errors(tmp_path):
     assert "extends itself" in errors(tmp_path / "a.toml")[0]
     (tmp_path / "c.toml").write_text('extends = "missing.toml"\n')
     assert "missing.toml: no such recipe file" in errors(tmp_path / "c.toml")[0]
+
+
+def test_every_recipe_folder_python_could_import_is_a_package_of_the_wheel():
+    # setuptools warns at every install about a data folder with an importable name that it is not told of
+    import tomllib
+
+    packages = tomllib.loads((RECIPES.parent / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    importable = {f"layered.recipes.{d.name}" for d in RECIPES.iterdir() if d.is_dir() and d.name.isidentifier()
+                  and not d.name.startswith("_")}
+    assert importable and importable <= set(packages)
