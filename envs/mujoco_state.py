@@ -22,7 +22,6 @@ from typing import Any
 
 import mujoco
 import numpy as np
-import torch
 from gymnasium.envs.mujoco.mujoco_rendering import MujocoRenderer
 
 from layered.envs.state import Capture, Reference, StateError, StateRules
@@ -36,18 +35,18 @@ def data_state(data: mujoco.MjData) -> dict[str, Any]:
     mujoco.mj_getState(data.model, data, integration, INTEGRATION)
     recomputed = copy.copy(data)
     mujoco.mj_forward(data.model, recomputed)
-    return {"integration": torch.from_numpy(integration),
-            "left_by_step": {name: torch.from_numpy(getattr(data, name).copy())
+    return {"integration": integration,
+            "left_by_step": {name: getattr(data, name).copy()
                              for name in _data_arrays() if _differs(data, recomputed, name)}}
 
 
 def restore_data(data: mujoco.MjData, state: dict[str, Any]) -> None:
     """Put `data` into a saved state: the integration state, a forward pass from it, then the arrays the step had
     left otherwise; its model must be restored already."""
-    mujoco.mj_setState(data.model, data, state["integration"].numpy(), INTEGRATION)
+    mujoco.mj_setState(data.model, data, state["integration"], INTEGRATION)
     mujoco.mj_forward(data.model, data)
     for name, value in state["left_by_step"].items():
-        getattr(data, name)[...] = value.numpy()
+        getattr(data, name)[...] = value
 
 
 @functools.cache
@@ -74,7 +73,7 @@ def model_changes(model: mujoco.MjModel, reference: mujoco.MjModel) -> dict[str,
     """The array fields of `model` that differ from `reference`'s (a freshly made env's model), and the model's
     signature (of its structure), which the restored model must share."""
     return {"signature": model.signature,
-            "arrays": {name: torch.from_numpy(getattr(model, name).copy())
+            "arrays": {name: getattr(model, name).copy()
                        for name in _model_arrays() if _differs(model, reference, name)}}
 
 
@@ -85,7 +84,7 @@ def restore_model(model: mujoco.MjModel, reference: mujoco.MjModel, changes: dic
     arrays = changes["arrays"]
     for name in _model_arrays():
         if name in arrays:
-            getattr(model, name)[...] = arrays[name].numpy()
+            getattr(model, name)[...] = arrays[name]
         elif _differs(model, reference, name):
             getattr(model, name)[...] = getattr(reference, name)
 

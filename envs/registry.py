@@ -112,8 +112,8 @@ def _fresh_env(env_id: str) -> gym.Env:
 
 
 def snapshot_env(env_id: str, env: gym.Env) -> dict[str, Any]:
-    """Everything needed to continue `env` exactly, as tensors and plain data (`torch.load(weights_only=True)`
-    reads it); a ValueError naming `env_id` where some of its state cannot be captured."""
+    """Everything needed to continue `env` exactly, as plain data and numpy arrays that tensors can hold (a group's
+    checkpoint stores them as tensors); a ValueError naming `env_id` where some of its state cannot be captured."""
     family, _ = split_id(env_id)
     return FAMILIES.get(family)().snapshot(env_id, env)
 

@@ -1,15 +1,17 @@
 """An environment's exact state as plain data, so that a checkpoint taken mid-episode continues it bit for bit.
 
 The state is read from the env's instance attributes, down its wrappers and every object they hold:
-plain values (None, bool, int, float, str) stay as they are; numpy arrays become tensors of the same
-dtype, numpy scalars tagged 0-d tensors; lists, tuples and dicts of these keep their shape; random
+plain values (None, bool, int, float, str) stay as they are; numpy arrays are copied, numpy scalars become
+tagged 0-d arrays; lists, tuples and dicts of these keep their shape; random
 generators save their bit generator's state. Other stateful types (MuJoCo's model and data, dm_control's
 physics) go through a `Capture`; spaces, specs, renderers and functions are the env's interface, not its
 state, and are left out (`StateRules.static`). Anything else stops the snapshot with a `StateError`
 naming where it was found.
 
-A snapshot holds only dicts, lists, tuples, str, int, float, bool, None and tensors, so
-`torch.load(..., weights_only=True)` reads it back. Restoring sets the same attributes on an env made
+A snapshot holds only dicts, lists, tuples, str, int, float, bool, None and numpy arrays of the dtypes a tensor
+holds: a group's checkpoint stores the arrays as tensors, which `torch.load(..., weights_only=True)` reads back
+(`layered.group_state`), while the environments' worker processes, which take the snapshots, never import torch.
+Restoring sets the same attributes on an env made
 the same way (its objects are restored in place, so what they share stays shared) and deletes the
 attributes that the snapshotted env did not have yet.
 """
@@ -23,7 +25,6 @@ from types import BuiltinFunctionType, FunctionType, MethodType
 from typing import Any
 
 import numpy as np
-import torch
 from gymnasium.envs.registration import EnvSpec
 from gymnasium.spaces import Space
 
@@ -33,6 +34,10 @@ only the changes from."""
 
 PLAIN = (type(None), bool, int, float, str)
 CONTAINERS = (list, tuple, dict)
+TENSOR_DTYPES = frozenset(np.dtype(name) for name in (
+    "bool", "uint8", "uint16", "uint32", "uint64", "int8", "int16", "int32", "int64", "float16", "float32", "float64",
+    "complex64", "complex128"))
+"""The array dtypes a snapshot may hold: those `torch.from_numpy` takes (in this machine's byte order)."""
 
 
 class StateError(ValueError):
@@ -68,9 +73,9 @@ def encode_data(value: Any, where: str) -> Any:
     if type(value) in PLAIN:
         return value
     if isinstance(value, np.ndarray):
-        return _tensor(value, where)
+        return _array(value, where)
     if isinstance(value, np.generic):
-        return {"kind": "scalar", "value": _tensor(np.asarray(value), where)}
+        return {"kind": "scalar", "value": _array(np.asarray(value), where)}
     if type(value) is list:
         return [encode_data(item, f"{where}[{i}]") for i, item in enumerate(value)]
     if type(value) is tuple:
@@ -83,25 +88,24 @@ def encode_data(value: Any, where: str) -> Any:
 
 def decode_data(state: Any) -> Any:
     """The value `encode_data` made `state` from, sharing no memory with `state`."""
-    if isinstance(state, torch.Tensor):
-        return state.numpy().copy()
+    if isinstance(state, np.ndarray):
+        return state.copy()
     if isinstance(state, list):
         return [decode_data(item) for item in state]
     if isinstance(state, tuple):
         return tuple(decode_data(item) for item in state)
     if isinstance(state, dict) and state["kind"] == "scalar":
-        return state["value"].numpy()[()]
+        return state["value"][()]
     if isinstance(state, dict):
         return {decode_data(k): decode_data(v) for k, v in state["items"]}
     return state
 
 
-def _tensor(array: np.ndarray, where: str) -> torch.Tensor:
-    """A copy of `array` as a tensor of the same dtype."""
-    try:
-        return torch.from_numpy(array.copy())
-    except TypeError as error:
-        raise StateError(f"{where} is an array of {array.dtype}, which a tensor cannot hold") from error
+def _array(array: np.ndarray, where: str) -> np.ndarray:
+    """A copy of `array`, which must be of a dtype that a tensor can hold."""
+    if array.dtype not in TENSOR_DTYPES:
+        raise StateError(f"{where} is an array of {array.dtype}, which a tensor cannot hold")
+    return array.copy()
 
 
 def _is_data(value: Any) -> bool:

@@ -177,7 +177,7 @@ def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
     pending = {int(i): Pending(**_arrays(p)) for i, p in loop["pending"].items()}
     return GroupCheckpoint(states, PhaseLoop(int(loop["step"]), pending, _arrays(loop["returns"]),
                                              _arrays(loop["lengths"])),
-                           _arrays(saved["rules"]), saved["envs"], _arrays(saved["obs"]), saved["learners"],
+                           _arrays(saved["rules"]), _arrays(saved["envs"]), _arrays(saved["obs"]), saved["learners"],
                            saved["torch_rng"], saved["replays"], saved["best"])
 
 

@@ -1,7 +1,10 @@
 """Snapshots of environments mid-episode: a fresh env restored from one steps bit for bit like the original,
-across episode ends and unseeded resets, and the snapshot is plain data that `torch.load(weights_only=True)` reads."""
+across episode ends and unseeded resets, and the snapshot is plain data and arrays, which a group's checkpoint
+stores as tensors that `torch.load(weights_only=True)` reads."""
 
 import io
+import re
+import sys
 import tomllib
 from pathlib import Path
 
@@ -11,6 +14,9 @@ import pytest
 import torch
 
 import layered.envs as envs
+from layered.checkpoint_writer import host_copy
+from layered.envs.state import TENSOR_DTYPES, StateError, encode_data
+from layered.group_state import _arrays
 
 RECIPES = Path(__file__).parent.parent / "recipes"
 
@@ -26,15 +32,16 @@ AFTER = 100  # steps compared at a time after a snapshot
 
 
 def round_trip(state: dict) -> dict:
-    """`state` saved with torch.save and read back as a checkpoint loader reads it."""
+    """`state` saved as a group's checkpoint saves it and read back as its loader reads it."""
     buffer = io.BytesIO()
-    torch.save(state, buffer)
+    torch.save(host_copy(state), buffer)
     buffer.seek(0)
-    return torch.load(buffer, weights_only=True)
+    return _arrays(torch.load(buffer, weights_only=True))
 
 
 def assert_plain(state, where="snapshot"):
-    """Only dicts, lists, tuples, str, int, float, bool, None and tensors: no numpy, no pickled objects."""
+    """Only dicts, lists, tuples, str, int, float, bool, None and numpy arrays: no numpy scalars, no pickled
+    objects."""
     if isinstance(state, dict):
         for key, value in state.items():
             assert isinstance(key, str), f"{where} has a key {key!r}"
@@ -43,7 +50,7 @@ def assert_plain(state, where="snapshot"):
         for i, item in enumerate(state):
             assert_plain(item, f"{where}[{i}]")
     else:
-        assert type(state) in (str, int, float, bool, type(None), torch.Tensor), f"{where} is a {type(state)}"
+        assert type(state) in (str, int, float, bool, type(None), np.ndarray), f"{where} is a {type(state)}"
 
 
 def step_together(group: list[gym.Env], rng: np.random.Generator, steps: int) -> int:
@@ -91,7 +98,9 @@ def test_a_fresh_env_restored_mid_episode_steps_exactly_like_the_original(env_id
     limit = envs.env_info(env_id).episode_steps
     assert step_together([a, c], rng, 2 * limit - BEFORE_THE_LIMIT) >= 1
 
-    state = round_trip(envs.snapshot_env(env_id, a))
+    snapshot = envs.snapshot_env(env_id, a)
+    assert_plain(snapshot)
+    state = round_trip(snapshot)
     assert_plain(state)
     b = envs.make_env(env_id)
     envs.restore_env(env_id, b, state)
@@ -129,6 +138,15 @@ def test_an_env_with_state_of_unknown_type_cannot_be_snapshotted(remembering_env
     env.step(env.action_space.sample())
     with pytest.raises(ValueError, match=r"Remembering-v0 cannot be checkpointed mid-episode: .*recent holds a deque"):
         envs.snapshot_env(remembering_env_id, env)
+
+
+@pytest.mark.parametrize("array", [np.array(["a"]), np.array([1.0], np.longdouble), np.array([None]),
+                                   np.array([1.0], ">f8" if sys.byteorder == "little" else "<f8")])
+def test_an_array_a_tensor_cannot_hold_cannot_be_snapshotted(array):
+    with pytest.raises(StateError, match=re.escape(f"x[0] is an array of {array.dtype}, which a tensor cannot hold")):
+        encode_data([array], "x")
+    for dtype in TENSOR_DTYPES:  # (the dtypes taken: a tensor holds each)
+        torch.from_numpy(encode_data(np.zeros(2, dtype), "x"))
 
 
 @pytest.mark.parametrize(("snapshotted", "restored", "problem"), [
