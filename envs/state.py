@@ -11,9 +11,8 @@ naming where it was found.
 A snapshot holds only dicts, lists, tuples, str, int, float, bool, None and numpy arrays of the dtypes a tensor
 holds: a group's checkpoint stores the arrays as tensors, which `torch.load(..., weights_only=True)` reads back
 (`layered.group_state`), while the environments' worker processes, which take the snapshots, never import torch.
-Restoring sets the same attributes on an env made
-the same way (its objects are restored in place, so what they share stays shared) and deletes the
-attributes that the snapshotted env did not have yet.
+Restoring sets the same attributes on an env made the same way (its objects are restored in place, so what they
+share stays shared) and deletes the attributes that the snapshotted env did not have yet.
 """
 
 from __future__ import annotations

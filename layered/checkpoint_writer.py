@@ -38,6 +38,17 @@ def host_copy(tree: Any, tensors: bool = True) -> Any:
     return tree
 
 
+def as_arrays(tree: Any) -> Any:
+    """`tree` with its tensors as numpy arrays again: what `host_copy` was given, once its copy is read back."""
+    if isinstance(tree, torch.Tensor):
+        return tree.numpy()
+    if isinstance(tree, dict):
+        return {key: as_arrays(value) for key, value in tree.items()}
+    if isinstance(tree, list | tuple):
+        return type(tree)(as_arrays(value) for value in tree)
+    return tree
+
+
 def writes_beside(device: torch.device) -> bool:
     """Whether checkpoints are written beside training: where it leaves a core free for them, its updates on a GPU
     or on fewer torch threads than the process has cores. (A 32-seed Hopper group on a 2-core CPU spent 6.7 s of

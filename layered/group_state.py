@@ -22,7 +22,7 @@ import torch
 
 from layered.best_journal import BestFiles, BestJournal, best_folder, check_best
 from layered.checkpoint import CheckpointError, load_latest, previous, save_checkpoint
-from layered.checkpoint_writer import host_copy
+from layered.checkpoint_writer import as_arrays, host_copy
 from layered.replay_journal import Manifest, ReplayJournal, check_segments, replay_folder
 from layered.rundir import RunDirError, RunInfo, check_new_run_dir, read_run_info, steps_option
 from layered.runstate import LoopState
@@ -174,22 +174,11 @@ def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
                               f"{steps_option(max_steps)}")
     states = [LoopState.from_json(text) for text in saved["states"]]
     loop = saved["loop"]
-    pending = {int(i): Pending(**_arrays(p)) for i, p in loop["pending"].items()}
-    return GroupCheckpoint(states, PhaseLoop(int(loop["step"]), pending, _arrays(loop["returns"]),
-                                             _arrays(loop["lengths"])),
-                           _arrays(saved["rules"]), _arrays(saved["envs"]), _arrays(saved["obs"]), saved["learners"],
-                           saved["torch_rng"], saved["replays"], saved["best"])
-
-
-def _arrays(tree: Any) -> Any:
-    """`tree` with its tensors as numpy arrays again (what `host_copy` was given)."""
-    if isinstance(tree, torch.Tensor):
-        return tree.numpy()
-    if isinstance(tree, dict):
-        return {key: _arrays(value) for key, value in tree.items()}
-    if isinstance(tree, list | tuple):
-        return type(tree)(_arrays(value) for value in tree)
-    return tree
+    pending = {int(i): Pending(**as_arrays(p)) for i, p in loop["pending"].items()}
+    return GroupCheckpoint(states, PhaseLoop(int(loop["step"]), pending, as_arrays(loop["returns"]),
+                                             as_arrays(loop["lengths"])),
+                           as_arrays(saved["rules"]), as_arrays(saved["envs"]), as_arrays(saved["obs"]),
+                           saved["learners"], saved["torch_rng"], saved["replays"], saved["best"])
 
 
 def has_group_checkpoint(directory: Path) -> bool:

@@ -14,9 +14,8 @@ import pytest
 import torch
 
 import layered.envs as envs
-from layered.checkpoint_writer import host_copy
+from layered.checkpoint_writer import as_arrays, host_copy
 from layered.envs.state import TENSOR_DTYPES, StateError, encode_data
-from layered.group_state import _arrays
 
 RECIPES = Path(__file__).parent.parent / "recipes"
 
@@ -36,7 +35,7 @@ def round_trip(state: dict) -> dict:
     buffer = io.BytesIO()
     torch.save(host_copy(state), buffer)
     buffer.seek(0)
-    return _arrays(torch.load(buffer, weights_only=True))
+    return as_arrays(torch.load(buffer, weights_only=True))
 
 
 def assert_plain(state, where="snapshot"):
