@@ -184,8 +184,9 @@ class FakeGraph:
         self.replays += 1
 
 
-def test_a_graphed_step_is_eager_on_the_capture_stream_then_captured_once_then_replayed(monkeypatch):
-    """The bookkeeping of the GPU path, with torch.cuda's graph and streams stood in for."""
+@pytest.fixture
+def fake_cuda(monkeypatch):
+    """torch.cuda's graph and streams stood in for: the graphs and streams made, and the current stream."""
     graphs, streams, current = [], [], FakeStream()
 
     @contextlib.contextmanager
@@ -198,6 +199,12 @@ def test_a_graphed_step_is_eager_on_the_capture_stream_then_captured_once_then_r
     monkeypatch.setattr(torch.cuda, "current_stream", lambda device: current)
     monkeypatch.setattr(torch.cuda, "stream", lambda stream: contextlib.nullcontext())
     monkeypatch.setattr(torch.cuda, "graph", capturing)
+    return graphs, streams, current
+
+
+def test_a_graphed_step_is_eager_on_the_capture_stream_then_captured_once_then_replayed(fake_cuda):
+    """The bookkeeping of the GPU path."""
+    graphs, streams, current = fake_cuda
     generator, calls = torch.Generator(), []
     step = GraphedStep(lambda: calls.append(1) or torch.full((2,), float(len(calls))), torch.device("cuda"),
                        [generator], eager=3)
@@ -208,6 +215,12 @@ def test_a_graphed_step_is_eager_on_the_capture_stream_then_captured_once_then_r
     assert [float(o[0]) for o in outputs] == [1.0, 2.0, 3.0, 4.0, 4.0, 4.0]
     assert outputs[3] is not step.outputs and outputs[4] is not outputs[5]  # copies, each outliving the next replay
     assert streams[0].waited_for == [current] * 4 and current.waited_for == [streams[0]] * 4
+
+
+def test_a_graphed_step_without_copies_hands_out_the_graphs_own_outputs(fake_cuda):
+    step = GraphedStep(lambda: (torch.ones(2), None), torch.device("cuda"), eager=1, copy_outputs=False)
+    outputs = [step() for _ in range(4)]
+    assert all(out is step.outputs for out in outputs[1:]) and outputs[0] is not step.outputs
 
 
 class DeprecatedRegistration(FakeGraph):

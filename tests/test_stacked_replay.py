@@ -57,6 +57,12 @@ def test_staging_on_a_cpu_hands_over_the_array_as_float32():
     assert staged.dtype == torch.float32 and staged.tolist() == [[1.0, 2.0]]
 
 
+def test_staging_into_a_tensor_of_the_callers_fills_and_returns_it():
+    out = torch.zeros(2, 2)
+    assert Staging(torch.device("cpu")).put(np.array([[1, 2], [3, 4]], bool), out=out) is out
+    assert out.tolist() == [[1.0, 1.0], [1.0, 1.0]]
+
+
 @cuda
 def test_a_replay_on_the_gpu_holds_what_one_on_the_cpu_holds():
     on_gpu, on_cpu = filled("cuda"), filled("cpu")
@@ -71,6 +77,29 @@ def test_staged_arrays_reach_the_gpu_in_order_though_they_share_one_buffer():
     for t in range(50):
         total += staging.put(np.full(4, t, np.float32))  # queued behind the copy, before the next one
     assert total.tolist() == [sum(range(50))] * 4
+
+
+@cuda
+def test_staged_arrays_reach_a_tensor_of_the_callers_in_order():
+    staging, into = Staging(torch.device("cuda")), torch.zeros(4, device="cuda")
+    total = torch.zeros(4, device="cuda")
+    for t in range(50):
+        total += staging.put(np.full(4, t, np.float32), out=into)
+    assert total.tolist() == [sum(range(50))] * 4
+
+
+@cuda
+def test_staging_on_a_side_stream_reuses_its_buffer_only_once_that_streams_copy_has_run():
+    """The copies queue behind a long kernel on the side stream: a buffer freed by an event of another stream
+    (the default one, idle) would be written again before they ran, and they would all read the last array."""
+    staging, side = Staging(torch.device("cuda")), torch.cuda.Stream()
+    with torch.cuda.stream(side):
+        total = torch.zeros(4, device="cuda")
+        torch.cuda._sleep(10**8)
+        for t in range(20):
+            total += staging.put(np.full(4, t, np.float32))
+    side.synchronize()
+    assert total.tolist() == [sum(range(20))] * 4
 
 
 def replayed(device: str, captured: bool) -> StackedReplay:

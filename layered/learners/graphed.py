@@ -26,9 +26,12 @@ class GraphedStep(Generic[Out]):
     """`step` run eagerly `eager` times, then captured as a CUDA graph and replayed; on a CPU, always eager."""
 
     def __init__(self, step: Callable[[], Out], device: torch.device, generators: Sequence[torch.Generator] = (),
-                 eager: int = 3) -> None:
-        """`generators`: those `step` draws from, registered with the graph so that each replay advances them."""
+                 eager: int = 3, copy_outputs: bool = True) -> None:
+        """`generators`: those `step` draws from, registered with the graph so that each replay advances them.
+        `copy_outputs`: a replay returns copies of the graph's outputs, which outlive the next replay; without,
+        the outputs themselves (a copy's launch saved where the caller reads them before the next call)."""
         self.step, self.device, self.generators, self.eager = step, device, list(generators), eager
+        self.copy_outputs = copy_outputs
         self.calls = 0
         self.graph: torch.cuda.CUDAGraph | None = None
         self.stream: torch.cuda.Stream | None = None
@@ -39,7 +42,7 @@ class GraphedStep(Generic[Out]):
         return self.graph is not None
 
     def __call__(self) -> Out:
-        """One step; its outputs are copies, so that they outlive the next replay."""
+        """One step; its outputs (copies of them where `copy_outputs`)."""
         self.calls += 1
         if self.device.type != "cuda":
             return self.step()
@@ -49,6 +52,8 @@ class GraphedStep(Generic[Out]):
             self._on_capture_stream(self._capture)
         assert self.graph is not None
         self.graph.replay()
+        if not self.copy_outputs:
+            return self.outputs  # type: ignore[return-value]
         return tree_map(lambda t: t.clone() if isinstance(t, torch.Tensor) else t, self.outputs)
 
     def _on_capture_stream(self, work: Callable[[], Out]) -> Out:

@@ -10,25 +10,40 @@ import torch
 
 class Staging:
     """Float32 arrays' way to one device: on a GPU, through a page-locked buffer per shape, copied in stream
-    order into a device tensor of that shape that stays where it is; on a CPU, the array itself as a tensor."""
+    order into a device tensor (of that shape, that stays where it is, or the caller's); on a CPU, the array
+    itself as a tensor."""
 
     def __init__(self, device: torch.device) -> None:
         self.device = device
-        self._buffers: dict[tuple[int, ...], tuple[torch.Tensor, torch.Tensor, torch.cuda.Event]] = {}
+        self._index: int | None = None  # the device's index (set at the first copy), see `put`
+        self._buffers: dict[tuple[int, ...], tuple[torch.Tensor, torch.cuda.Event]] = {}
+        self._tensors: dict[tuple[int, ...], torch.Tensor] = {}
 
-    def put(self, array: np.ndarray) -> torch.Tensor:
-        """`array` as a float32 tensor on the device. On a GPU the tensor is the same one at every call of a
-        shape (valid until the next such call), and the host returns before the copy has run."""
+    def put(self, array: np.ndarray, out: torch.Tensor | None = None) -> torch.Tensor:
+        """`array` as a float32 tensor on the device: copied into `out` (a float32 tensor of its shape there) if
+        given, and returned. On a GPU the tensor is otherwise the same one at every call of a shape (valid until
+        the next such call), and the host returns before the copy has run."""
         array = np.ascontiguousarray(array, np.float32)
         if self.device.type != "cuda":
-            return torch.from_numpy(array)
+            staged = torch.from_numpy(array)
+            return staged if out is None else out.copy_(staged)
+        if self._index is None:  # (the stream looked up by index: without one, torch finds the device in Python)
+            self._index = torch.cuda.current_device() if self.device.index is None else self.device.index
         if array.shape not in self._buffers:
             with torch.inference_mode(False):  # ordinary tensors, written in and out of inference mode alike
-                self._buffers[array.shape] = (torch.empty(array.shape, pin_memory=True),
-                                              torch.empty(array.shape, device=self.device), torch.cuda.Event())
-        host, tensor, copied = self._buffers[array.shape]
+                self._buffers[array.shape] = (torch.empty(array.shape, pin_memory=True), torch.cuda.Event())
+        host, copied = self._buffers[array.shape]
         copied.synchronize()  # the last copy out of the page-locked buffer has run: it may be written again
         host.numpy()[...] = array
-        tensor.copy_(host, non_blocking=True)
-        copied.record()
-        return tensor
+        if out is None:
+            out = self._tensor(array.shape)
+        out.copy_(host, non_blocking=True)
+        copied.record(torch.cuda.current_stream(self._index))
+        return out
+
+    def _tensor(self, shape: tuple[int, ...]) -> torch.Tensor:
+        """The device tensor that arrays of `shape` are copied into when the caller gives none."""
+        if shape not in self._tensors:
+            with torch.inference_mode(False):
+                self._tensors[shape] = torch.empty(shape, device=self.device)
+        return self._tensors[shape]

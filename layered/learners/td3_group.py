@@ -145,7 +145,7 @@ class TD3Group:
     def act(self, obs: np.ndarray, explore: bool) -> np.ndarray:
         """Each seed's action for its observation (`obs`: [K, obs] -> [K, action]); with `explore`,
         Gaussian noise of `exploration_noise` times the half-range, clipped to the bounds."""
-        action = self.actor_outputs(self.staging.put(obs)[:, None])[:, 0].cpu().numpy()
+        action = self.actor_outputs(obs[:, None])[:, 0].cpu().numpy()
         if explore:
             low, high = self.action_space.low, self.action_space.high
             noise = self.rng.normal(0.0, self.config.exploration_noise, action.shape) * (high - low) / 2
@@ -156,20 +156,22 @@ class TD3Group:
     def greedy(self, obs: np.ndarray) -> np.ndarray:
         """Each seed's actions without exploration for `n` observations of its own (`obs`: [K, n, obs] ->
         [K, n, action]): the episodes of an evaluation, played side by side."""
-        return self.actor_outputs(self.staging.put(obs)).cpu().numpy()
+        return self.actor_outputs(obs).cpu().numpy()
 
-    def actor_outputs(self, obs: torch.Tensor) -> torch.Tensor:
-        """The actor's actions for `obs` on the device ([K, n, obs]): eagerly, or with `cudagraphs` as the graph
-        captured for n observations per seed (the same kernels, launched at once: the same actions)."""
+    def actor_outputs(self, obs: np.ndarray) -> torch.Tensor:
+        """The actor's actions on the device for the host's `obs` ([K, n, obs]), to be read before the next call:
+        eagerly, or with `cudagraphs` as the graph captured for n observations per seed (the same kernels,
+        launched at once: the same actions), the observations copied straight into the tensor it reads."""
         if self._acting is None:
-            return self.actions(obs, self.actor)
+            return self.actions(self.staging.put(obs), self.actor)
         n = obs.shape[1]
         if n not in self._acting:
             with torch.inference_mode(False):  # an ordinary tensor, written in and out of inference mode alike
                 seen = torch.zeros((self.k, n, self.obs_dim), device=self.device)
-            self._acting[n] = (seen, GraphedStep(lambda: self.actions(seen, self.actor), self.device))
+            self._acting[n] = (seen, GraphedStep(lambda: self.actions(seen, self.actor), self.device,
+                                                 copy_outputs=False))
         seen, step = self._acting[n]
-        seen.copy_(obs)
+        self.staging.put(obs, out=seen)
         return step()
 
     def act_macs(self) -> int:
@@ -209,7 +211,7 @@ class TD3Group:
             if self._graphed is None:
                 critic, actor = self._update_step(rows, acting, delayed, variant)
             else:
-                self._masks.copy_(self.staging.put(np.stack([rows, acting, delayed])))
+                self.staging.put(np.stack([rows, acting, delayed]), out=self._masks)
                 critic, actor = self.captured_step(variant)()
         losses = {"critic": (critic, rows)}
         if actor is not None:
