@@ -63,6 +63,36 @@ def test_staging_into_a_tensor_of_the_callers_fills_and_returns_it():
     assert out.tolist() == [[1.0, 1.0], [1.0, 1.0]]
 
 
+class FakeEvent:
+    """Stands for a CUDA event on a CPU: what was asked of it, in order."""
+
+    def __init__(self, log):
+        self.log = log
+
+    def synchronize(self):
+        self.log.append("synchronize")
+
+    def record(self, stream=None):
+        self.log.append(("record", stream))
+
+
+def test_staging_to_a_gpu_waits_for_a_buffers_last_copy_and_finds_the_stream_by_the_devices_index(monkeypatch):
+    """The bookkeeping of the GPU path, with torch.cuda's events and streams and page-locked memory stood in for:
+    each copy's event recorded on the current stream looked up by index (torch walks to the current device in
+    Python when given none), and a buffer written again only once its last copy has run."""
+    log, empty = [], torch.empty
+    monkeypatch.setattr(torch.cuda, "Event", lambda: FakeEvent(log))
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 2)
+    monkeypatch.setattr(torch.cuda, "current_stream", lambda device=None: f"stream of {device}")
+    monkeypatch.setattr(torch, "empty", lambda shape, pin_memory=False: empty(shape))
+    staging, out = Staging(torch.device("cuda")), torch.zeros(3)
+    for t in range(2):
+        assert staging.put(np.full(3, t), out=out) is out and out.tolist() == [t] * 3
+    assert log == ["synchronize", ("record", "stream of 2")] * 2
+    assert Staging(torch.device("cuda:1")).put(np.zeros(1), out=torch.zeros(1)) is not None
+    assert log[-1] == ("record", "stream of 1")
+
+
 @cuda
 def test_a_replay_on_the_gpu_holds_what_one_on_the_cpu_holds():
     on_gpu, on_cpu = filled("cuda"), filled("cpu")
