@@ -15,7 +15,9 @@ class Staging:
 
     def __init__(self, device: torch.device) -> None:
         self.device = device
-        self._index: int | None = None  # the device's index (set at the first copy), see `put`
+        # the device's index, by which each copy's stream is looked up (without one, torch finds the device in Python)
+        self._index = (device.index if device.index is not None else torch.cuda.current_device()
+                       ) if device.type == "cuda" else None
         self._buffers: dict[tuple[int, ...], tuple[torch.Tensor, torch.cuda.Event]] = {}
         self._tensors: dict[tuple[int, ...], torch.Tensor] = {}
 
@@ -27,8 +29,6 @@ class Staging:
         if self.device.type != "cuda":
             staged = torch.from_numpy(array)
             return staged if out is None else out.copy_(staged)
-        if self._index is None:  # (the stream looked up by index: without one, torch finds the device in Python)
-            self._index = torch.cuda.current_device() if self.device.index is None else self.device.index
         if array.shape not in self._buffers:
             with torch.inference_mode(False):  # ordinary tensors, written in and out of inference mode alike
                 self._buffers[array.shape] = (torch.empty(array.shape, pin_memory=True), torch.cuda.Event())
