@@ -7,7 +7,8 @@ returns tensors. It must not read a value back to the host (`.item()`, `bool(t)`
 from a generator the graph does not know, or make shapes that depend on values; `tests/test_graphed.py`
 checks a group's update for all three on any machine. The step's first `eager` calls run as they are,
 so that lazily made state (gradients, optimiser moments, library handles) exists before the capture;
-the next call captures it, and every call from then on replays it.
+the next call captures it, and every call from then on replays it. A replay hands out the graph's own
+output tensors, which the next replay overwrites: a caller that keeps them copies them.
 """
 
 from __future__ import annotations
@@ -17,8 +18,6 @@ from collections.abc import Callable, Sequence
 from typing import Generic, TypeVar
 
 import torch
-from torch.utils._pytree import tree_map
-
 Out = TypeVar("Out")
 
 
@@ -26,12 +25,9 @@ class GraphedStep(Generic[Out]):
     """`step` run eagerly `eager` times, then captured as a CUDA graph and replayed; on a CPU, always eager."""
 
     def __init__(self, step: Callable[[], Out], device: torch.device, generators: Sequence[torch.Generator] = (),
-                 eager: int = 3, copy_outputs: bool = True) -> None:
-        """`generators`: those `step` draws from, registered with the graph so that each replay advances them.
-        `copy_outputs`: a replay returns copies of the graph's outputs, which outlive the next replay; without,
-        the outputs themselves (a copy's launch saved where the caller reads them before the next call)."""
+                 eager: int = 3) -> None:
+        """`generators`: those `step` draws from, registered with the graph so that each replay advances them."""
         self.step, self.device, self.generators, self.eager = step, device, list(generators), eager
-        self.copy_outputs = copy_outputs
         self.calls = 0
         self.graph: torch.cuda.CUDAGraph | None = None
         self.stream: torch.cuda.Stream | None = None
@@ -42,7 +38,7 @@ class GraphedStep(Generic[Out]):
         return self.graph is not None
 
     def __call__(self) -> Out:
-        """One step; its outputs (copies of them where `copy_outputs`)."""
+        """One step; its outputs (once replayed, the graph's own, until the next replay)."""
         self.calls += 1
         if self.device.type != "cuda":
             return self.step()
@@ -52,9 +48,7 @@ class GraphedStep(Generic[Out]):
             self._on_capture_stream(self._capture)
         assert self.graph is not None
         self.graph.replay()
-        if not self.copy_outputs:
-            return self.outputs  # type: ignore[return-value]
-        return tree_map(lambda t: t.clone() if isinstance(t, torch.Tensor) else t, self.outputs)
+        return self.outputs  # type: ignore[return-value]
 
     def _on_capture_stream(self, work: Callable[[], Out]) -> Out:
         """`work` on the stream the capture uses (libraries keep handles per stream: the eager calls make

@@ -283,8 +283,7 @@ class StackedReplay:
             self._store(staged, every)
         else:  # (on a GPU the staged tensor is the same at every call of its shape: the graph reads it there)
             if every not in self._stores:
-                self._stores[every] = GraphedStep(functools.partial(self._store, staged, every), self._rows.device,
-                                                  copy_outputs=False)  # (it has none)
+                self._stores[every] = GraphedStep(functools.partial(self._store, staged, every), self._rows.device)
             self._stores[every]()
         self.stored += 1 if rows is None else rows
 

@@ -168,8 +168,7 @@ class TD3Group:
         if n not in self._acting:
             with torch.inference_mode(False):  # an ordinary tensor, written in and out of inference mode alike
                 seen = torch.zeros((self.k, n, self.obs_dim), device=self.device)
-            self._acting[n] = (seen, GraphedStep(lambda: self.actions(seen, self.actor), self.device,
-                                                 copy_outputs=False))
+            self._acting[n] = (seen, GraphedStep(lambda: self.actions(seen, self.actor), self.device))
         seen, step = self._acting[n]
         self.staging.put(obs, out=seen)
         return step()
@@ -198,7 +197,8 @@ class TD3Group:
 
     def update(self, rows: np.ndarray | None = None) -> GroupLosses | None:
         """One TD3 update of the seeds in the `rows` mask (default all) that have stored a transition;
-        the others are left exactly as they were. None when no seed updates."""
+        the others are left exactly as they were. None when no seed updates. Captured as a CUDA graph, the losses
+        are the graph's own tensors, which its next replay overwrites: copy them to keep them (`PendingLosses`)."""
         rows = (self.replay.stored > 0) if rows is None else rows & (self.replay.stored > 0)
         if not rows.any():
             return None
