@@ -132,14 +132,23 @@ NOT_A_SETTING = frozenset({"train.seed", "train.checkpoint_every", "env.workers"
 """Recipe keys that differ between the seeds of one setup, or change no number it reports."""
 
 
-def _setting(recipe: dict[str, Any], prefix: str = "") -> tuple[tuple[str, str], ...]:
-    """A resolved recipe as (dotted key, value) pairs, layers by name and `NOT_A_SETTING` left out: what tells
-    the setups of runs filed under one label apart."""
+def _setting(recipe: dict[str, Any]) -> tuple[tuple[str, str], ...]:
+    """A resolved recipe as (dotted key, value) pairs, layers by name, `NOT_A_SETTING` left out and
+    `train.steps_per_phase` too where explicit phases each name their steps (there it changes nothing, and a label
+    that showed it would misstate the budget): what tells the setups of runs filed under one label apart."""
+    train = recipe.get("train", {})
+    if train.get("order") == "explicit" and all(p.get("steps") for p in train.get("phases") or [{}]):
+        recipe = {**recipe, "train": {k: v for k, v in train.items() if k != "steps_per_phase"}}
+    return _pairs(recipe)
+
+
+def _pairs(recipe: Any, prefix: str = "") -> tuple[tuple[str, str], ...]:
+    """`recipe` flattened to (dotted key, value) pairs below `prefix`, lists of named tables by name."""
     if isinstance(recipe, list) and recipe and all(isinstance(v, dict) and "name" in v for v in recipe):
         recipe = {v["name"]: {k: x for k, x in v.items() if k != "name"} for v in recipe}
     if isinstance(recipe, dict):
         return tuple(pair for k, v in recipe.items() if f"{prefix}{k}" not in NOT_A_SETTING
-                     for pair in _setting(v, f"{prefix}{k}."))
+                     for pair in _pairs(v, f"{prefix}{k}."))
     return ((prefix[:-1], recipe if isinstance(recipe, str) else json.dumps(recipe, sort_keys=True)),)
 
 

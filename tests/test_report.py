@@ -168,6 +168,11 @@ def test_runs_of_different_recipes_under_one_label_are_setups_of_their_own():
     flat = {"layers.fast.a": "[1, 2]"}
     assert dict(_setting({"layers": [{"name": "fast", "a": [1, 2]}], "train": {"seed": 3, "checkpoint_every": 9},
                           "log": {"tensorboard": True}, "env": {"workers": 2}})) == flat
+    # explicit phases that each name their steps make `steps_per_phase` inert: it is no setting of the run
+    phased = {"train": {"order": "explicit", "steps_per_phase": 9, "phases": [{"learn": ["fast"], "steps": 3}]}}
+    assert "train.steps_per_phase" not in dict(_setting(phased))
+    phased["train"]["phases"].append({"learn": ["slow"]})  # a phase without steps runs `steps_per_phase` of them
+    assert dict(_setting(phased))["train.steps_per_phase"] == "9"
     setups = group([at(0, 1.0, "slow-to-fast"), at(1, 1.0, "slow-to-fast", older=True), at(0, 2.0, "explicit"),
                     at(1, 2.0, "explicit")])
     assert [(s.label, [r.seed for r in s.runs]) for s in setups] == [
