@@ -34,6 +34,16 @@ def test_shipped_recipes_have_the_papers_settings():
     assert len(load_recipe(RECIPES / "pendulum" / "td3.toml").layers) == 1
 
 
+@pytest.mark.parametrize("folder", sorted(p for p in RECIPES.iterdir() if p.is_dir() and p.name != "research"),
+                         ids=lambda p: p.name)
+def test_the_recipes_of_one_task_are_evaluated_alike(folder):
+    """A task's methods, baselines among them, are compared on one environment under one evaluation."""
+    recipes = {p.name: load_recipe(p) for p in sorted(folder.glob("*.toml"))}
+    assert len(recipes) >= 2, f"{folder.name}: a method without its baseline"
+    settings = {name: (r.env.id, r.eval.every, r.eval.episodes, r.eval.fresh_episodes) for name, r in recipes.items()}
+    assert len(set(settings.values())) == 1, settings
+
+
 def test_td3_defaults_are_the_papers():
     c = load_recipe(base()).learner_config(0)
     assert (c.hidden, c.lr, c.batch_size, c.gamma, c.tau) == ((400, 300), 3e-4, 256, 0.99, 0.005)
