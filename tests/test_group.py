@@ -1,6 +1,9 @@
 """Seeds trained as one group (`layered train --seeds`): each seed's transitions are those its own stack
 gives, each seed writes an ordinary run directory, and a group run is deterministic."""
 
+import csv
+import re
+import statistics
 from pathlib import Path
 
 import numpy as np
@@ -120,6 +123,11 @@ def test_a_group_writes_each_seed_an_ordinary_run_directory_and_writes_it_again_
     recipe = str(ROOT / "recipes/pendulum/tla-c.toml")
     for out in ("a", "b"):
         assert main(["train", recipe, "--seeds", "2,5", "--steps", "300", "--out", str(tmp_path / out), *TINY]) == 0
+        if out == "a":  # each progress line: the seeds' mean return and its spread over them, as the report's
+            said = re.findall(r"eval return (\S+) ± ([-\d.]+)", capsys.readouterr().err)[-1]
+            last = [float(list(csv.DictReader((tmp_path / f"a/seed{k}/metrics.csv").open()))[-1]["return_mean"])
+                    for k in (2, 5)]
+            assert said == (f"{statistics.mean(last):.1f}", f"{statistics.stdev(last):.1f}")
     for seed in (2, 5):
         a, b = tmp_path / "a" / f"seed{seed}", tmp_path / "b" / f"seed{seed}"
         for name in ("metrics.csv", "episodes.csv", "results.json", "recipe.toml"):
