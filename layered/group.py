@@ -538,8 +538,7 @@ class Group:
             if seed.events is not None:
                 seed.events.write(row)
         returns = np.array([r.return_mean for r in results])
-        spread = float(returns.std(ddof=1)) if len(returns) > 1 else 0.0  # (over seeds, as `layered report`'s)
-        bar.evaluated(step, float(returns.mean()), spread, learned)
+        bar.evaluated(step, float(returns.mean()), float(returns.std()), learned)
 
     def _evaluations(self, phase: Phase, evaluator: Stacks, episodes: int, offset: int) -> list[Evaluation]:
         """Each seed's evaluation of its present layers over `episodes` episodes seeded from its seed + `offset`, as

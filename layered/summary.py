@@ -137,7 +137,8 @@ def _setting(recipe: dict[str, Any]) -> tuple[tuple[str, str], ...]:
     `train.steps_per_phase` too where explicit phases each name their steps (there it changes nothing, and a label
     that showed it would misstate the budget): what tells the setups of runs filed under one label apart."""
     train = recipe.get("train", {})
-    if train.get("order") == "explicit" and all(p.get("steps") for p in train.get("phases") or [{}]):
+    phases = train.get("phases") or []
+    if train.get("order") == "explicit" and phases and all(p.get("steps") for p in phases):
         recipe = {**recipe, "train": {k: v for k, v in train.items() if k != "steps_per_phase"}}
     return _pairs(recipe)
 

@@ -127,7 +127,7 @@ def test_a_group_writes_each_seed_an_ordinary_run_directory_and_writes_it_again_
             said = re.findall(r"eval return (\S+) ± ([-\d.]+)", capsys.readouterr().err)[-1]
             last = [float(list(csv.DictReader((tmp_path / f"a/seed{k}/metrics.csv").open()))[-1]["return_mean"])
                     for k in (2, 5)]
-            assert said == (f"{statistics.mean(last):.1f}", f"{statistics.stdev(last):.1f}")
+            assert said == (f"{statistics.mean(last):.1f}", f"{statistics.pstdev(last):.1f}")
     for seed in (2, 5):
         a, b = tmp_path / "a" / f"seed{seed}", tmp_path / "b" / f"seed{seed}"
         for name in ("metrics.csv", "episodes.csv", "results.json", "recipe.toml"):
