@@ -163,17 +163,43 @@ def paired_seeds(first: Any, second: Any) -> bool:
 
 def between_phases(setups: Sequence[Any]) -> list[Row]:
     """In each finished setup trained in phases, each phase against the one before it, seed by seed, on the
-    returns of its best and its final weights on fresh episodes (for TLA: the stack against its slow layer alone)."""
+    returns of its best and its final weights on fresh episodes (for TLA: the stack against its slow layer alone);
+    and a setup whose runs continued the stacks of another's (`continued`), its first phase against the phase
+    they continued from, where `between_setups` does not compare the two already."""
     rows = []
-    for s in (s for s in setups if all(r.finished for r in s.runs)):
+    done = [s for s in setups if all(r.finished for r in s.runs)]
+    for s in done:
         phases = s.runs[0].phases
-        for p in range(1, min(len(r.phases) for r in s.runs)):
+        pairs = [(p, s.runs, p - 1, f"phase {p - 1} ({_learns(phases[p - 1])})")
+                 for p in range(1, min(len(r.phases) for r in s.runs))]
+        if (earlier := continued(s, done)) is not None:
+            source, runs, q = earlier
+            if len(phases) > 1 or q < min(len(r.phases) for r in source.runs) - 1:
+                pairs.insert(0, (0, runs, q, f"{source.method} phase {q} ({_learns(runs[0].phases[q])})"))
+        for p, runs, q, second in pairs:
             for key, name, fmt in MEASURES[:2]:
-                a, b = _values(s.runs, key, p), _values(s.runs, key, p - 1)
+                a, b = _values(s.runs, key, p), _values(runs, key, q)
                 if a is not None and b is not None and (result := paired(a, b)) is not None:
-                    rows.append(Row(s.env, f"{s.method} phase {p} ({_learns(phases[p])})",
-                                    f"phase {p - 1} ({_learns(phases[p - 1])})", name, fmt, True, result))
+                    rows.append(Row(s.env, f"{s.method} phase {p} ({_learns(phases[p])})", second, name, fmt, True,
+                                    result))
     return rows
+
+
+def continued(setup: Any, setups: Sequence[Any]) -> tuple[Any, list[Any], int] | None:
+    """The setup of `setups` whose runs `setup`'s runs continued (each started from the layers of its own run of it,
+    all at the end of one phase: `Run.continues`), in the same environment and setting; those runs, in the order of
+    `setup`'s; and that phase. None where there is no such setup."""
+    owners = {run.path.resolve(): (other, run) for other in setups if other is not setup for run in other.runs}
+    found = [owners[run.continues[0]] for run in setup.runs if run.continues and run.continues[0] in owners]
+    phases = {run.continues[1] for run in setup.runs if run.continues}
+    if not found or len(found) < len(setup.runs) or len(phases) > 1:
+        return None
+    (source, _), runs, phase = found[0], [run for _, run in found], phases.pop()
+    one_each = all(other is source for other, _ in found) and len({id(run) for run in runs}) == len(runs)
+    if not one_each or (source.env, source.realtime) != (setup.env, setup.realtime) \
+            or any(len(run.phases) <= phase for run in runs):
+        return None
+    return source, runs, phase
 
 
 @dataclass(frozen=True)

@@ -45,6 +45,7 @@ class Run:
     unnamed: tuple[str, ...] = ()  # the `key=value`s that set its setup apart but its label leaves out (`told_apart`)
     trained_before: int = 0  # steps of training behind the weights its layers started from (`_start_weights`)
     started_from: frozenset[Path] = frozenset()  # the run directories behind those weights, resolved
+    continues: tuple[Path, int] | None = None  # the run (resolved) and phase at whose end all of them were saved
 
     @property
     def finished(self) -> bool:
@@ -174,20 +175,23 @@ def _curve(rows: Sequence[dict[str, str]], phase: str) -> tuple[tuple[int, float
 
 def _whole_run(rows: Sequence[dict[str, str]], recipe: dict[str, Any]) -> dict[str, Any]:
     """A run's `Run` fields over the whole of its training, from the steps behind its start weights on."""
-    before, sources = _start_weights(recipe)
+    before, sources, ends = _start_weights(recipe)
     return {"total_curve": _total_curve(rows, before), "phase_starts": _phase_starts(rows, before),
-            "trained_before": before, "started_from": sources}
+            "trained_before": before, "started_from": sources, "continues": _continues(ends)}
 
 
-def _start_weights(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) -> tuple[int, frozenset[Path]]:
-    """The environment steps of training behind the weights a run's layers started from (`weights`), and the run
-    directories they came from (resolved): each from the run directory holding that checkpoint, up to the end of
-    the last phase that trained the layer, with that run's own start weights behind it; a file outside a run
-    directory (or in a run since moved) adds nothing."""
-    steps, sources = 0, frozenset[Path]()
+def _start_weights(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) \
+        -> tuple[int, frozenset[Path], list[tuple[Path, int] | None]]:
+    """The environment steps of training behind the weights a run's layers started from (`weights`), the run
+    directories they came from (resolved), and for each such layer the run and phase that last trained it (None
+    where none is known): each from the run directory holding that checkpoint, up to the end of the last phase
+    that trained the layer, with that run's own start weights behind it; a file outside a run directory (or in a
+    run since moved) adds nothing."""
+    steps, sources, ends = 0, frozenset[Path](), list[tuple[Path, int] | None]()
     for layer in recipe["layers"]:
         if not layer.get("weights"):
             continue
+        ends.append(None)
         from layered.schema import SEED  # (the schema loads torch: only for runs started from weights)
 
         source = Path(layer["weights"].replace(SEED, str(recipe["train"]["seed"]))).parent.parent.resolve()
@@ -197,14 +201,24 @@ def _start_weights(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) 
             rows = _metrics(source)
             learns = {r["phase"]: r["learn"].split("+") for r in rows}.values()  # each phase's, in order
             learned = [i for i, names in enumerate(learns) if layer["name"] in names]
-            earlier, behind = _start_weights(tomllib.loads((source / "recipe.toml").read_text()), seen | {source})
+            earlier, behind, _ = _start_weights(tomllib.loads((source / "recipe.toml").read_text()), seen | {source})
             sources |= {source, *behind}
             if learned:
                 steps = max(steps, earlier + sum(_phase_ends(rows)[: learned[-1] + 1]))
+                ends[-1] = (source, learned[-1])
         except (OSError, ValueError, KeyError, TypeError, tomllib.TOMLDecodeError) as e:
             print(f"layered: warning: {source}, where layer {layer['name']!r} started from, cannot be read "
                   f"({e.__class__.__name__}: {e}); its steps are not counted", file=sys.stderr)
-    return steps, sources
+    return steps, sources, ends
+
+
+def _continues(ends: Sequence[tuple[Path, int] | None]) -> tuple[Path, int] | None:
+    """The run and phase a run's stack continues from: where every layer it started from weights came from one run,
+    that run and the latest phase that trained one of them (the stack of that phase's end); else None."""
+    known = [end for end in ends if end is not None]
+    if not known or len(known) < len(ends) or len({source for source, _ in known}) > 1:
+        return None
+    return known[0][0], max(phase for _, phase in known)
 
 
 def _phase_ends(rows: Sequence[dict[str, str]]) -> list[int]:

@@ -162,6 +162,34 @@ def test_setups_whose_seeds_share_their_layers_are_compared_seed_by_seed(tmp_pat
     assert {r["paired"] for r in _compared(recipe + fewer, tmp_path)} == {"False"}
 
 
+def test_a_setup_that_continued_another_setups_stacks_is_compared_with_the_phase_it_continued(tmp_path):
+    def tla(seed, slow, fast):
+        return _run("p/tla-c", seed, [{"phase": 0, "learn": ["slow"], "fresh_best_return_mean": slow},
+                                      {"phase": 1, "learn": ["fast"], "fresh_best_return_mean": fast}])
+
+    def probe(label, seed, value, continues):
+        return replace(_run(label, seed, [{"phase": 0, "learn": ["fast"], "fresh_best_return_mean": value}]),
+                       started_from=frozenset({Path(continues[0])}), continues=(Path(continues[0]), continues[1]))
+
+    recipe = [tla(k, slow, fast) for k, (slow, fast) in enumerate([(1.0, 3.0), (2.0, 5.0), (4.0, 4.0)])]
+    # fast phases over each seed's slow layer (phase 0 of /r/p/tla-c-<k>): 3, 5, 4 against it, as in
+    # test_paired_by_hand: differences 2, 3, 0, mean 5/3, sample std sqrt(7/3)
+    over_slow = [probe("p/probe", k, v, (f"/r/p/tla-c-{k}", 0)) for k, v in enumerate([3.0, 5.0, 4.0])]
+    rows = {(r["first"], r["second"]): r for r in _compared(recipe + over_slow, tmp_path)}
+    row = rows["probe phase 0 (fast)", "tla-c phase 0 (slow)"]
+    assert row["paired"] == "True" and float(row["difference"]) == pytest.approx(5 / 3)
+    assert float(row["p"]) == pytest.approx(p_two_sided_df2((5 / 3) / (math.sqrt(7 / 3) / math.sqrt(3))))
+    assert float(row["first_above"]) == pytest.approx(2.5 / 3)
+    assert rows["probe", "tla-c"]["paired"] == "True"  # and against the recipe's stacks, as setups
+    # no phase row where a seed's stack came from elsewhere, where two seeds continued one run, or where the phase
+    # continued is the other's last (the setups' comparison is that one)
+    elsewhere = [*over_slow[:2], probe("p/probe", 2, 4.0, ("/r/elsewhere", 0))]
+    one_run = [*over_slow[:2], probe("p/probe", 2, 4.0, ("/r/p/tla-c-1", 0))]
+    last = [probe("p/probe", k, v, (f"/r/p/tla-c-{k}", 1)) for k, v in enumerate([3.0, 5.0, 4.0])]
+    for probes in (elsewhere, one_run, last):
+        assert not [r for r in _compared(recipe + probes, tmp_path) if r["first"].startswith("probe phase")]
+
+
 def _compared(runs, out):
     write_report(group(runs), out)
     return list(csv.DictReader((out / "comparisons.csv").open()))

@@ -83,6 +83,12 @@ def test_a_run_started_from_another_runs_weights_continues_that_runs_steps(tmp_p
     assert c.started_from == {(tmp_path / "a" / "seed1").resolve(), (tmp_path / "b").resolve()}
     assert a.shares_layers_with(b) and b.shares_layers_with(a) and b.shares_layers_with(c)
     assert not d.shares_layers_with(a) and not a.shares_layers_with(d)
+    # the stack each continues: b a's at the end of its phase 0; c two runs' stacks; d none known
+    assert b.continues == ((tmp_path / "a" / "seed1").resolve(), 0) and c.continues is None and d.continues is None
+    # both layers from a, the fast one from its phase 2: a's stack at that phase's end
+    write(tmp_path / "e", "0,slow+fast,0,-150\n0,slow+fast,1000,-140\n",
+          [("slow", f"{tmp_path}/a/seed1/checkpoints/slow.pt"), ("fast", f"{tmp_path}/a/seed1/checkpoints/fast.pt")])
+    assert find_runs([tmp_path / "e"])[0].continues == ((tmp_path / "a" / "seed1").resolve(), 2)
     # a damaged run behind the weights is a warning, not a damaged run here
     (tmp_path / "a" / "seed1" / "metrics.csv").write_text("phase,step\n0,x\n")
     with contextlib.redirect_stderr(io.StringIO()) as err:
