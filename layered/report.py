@@ -389,9 +389,10 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
                   "(real-time or not), as independent samples of seeds (Welch's t-test) or, where each seed's two runs "
                   "share trained layers (one started from the other's weights, or both from one run's), seed by seed "
                   "(a paired t-test), and each phase of a stack trained in phases against the phase before it, seed by "
-                  "seed: the difference of the means with its 95% confidence interval, the two-sided p-value, and how "
-                  "often the first is above the second (over all pairs of a seed of each, or over the seeds; ties "
-                  "count half). \"p, Holm\" is the p-value adjusted for every comparison of this report (Holm's "
+                  "seed (a setup whose runs continued another's stacks: its first phase against the phase it "
+                  "continued): the difference of the means with its 95% confidence interval, the two-sided p-value, "
+                  "and how often the first is above the second (over all pairs of a seed of each, or over the seeds; "
+                  "ties count half). \"p, Holm\" is the p-value adjusted for every comparison of this report (Holm's "
                   "method): where it is below 0.05, the chance that any of them is below by chance alone is at most "
                   "5%. With few seeds these tests have little power: a p-value above 0.05 says that the seeds do not "
                   "tell the two apart, not that the two are the same. The rows are in `comparisons.csv`.", "",
