@@ -29,10 +29,13 @@ MEASURES: tuple[tuple[str, str, str], ...] = (
     ("fresh_final_return_mean", "return, final weights", "{:+.1f}"),
     ("return_mean", "return, final evaluation", "{:+.1f}"),
     ("auc", "AUC", "{:+.3f}"),
+    ("run_auc", "AUC, whole run", "{:+.3f}"),
     ("fresh_final_repetition", "action repetition, final weights", "{:+.1%}"),
 )
 """What setups are compared on (a `results.json` key, its name, the format of a difference), where every run
-of both has it; phases are compared on the first two, the fresh-episode returns each phase records."""
+of both has it; phases are compared on the first two, the fresh-episode returns each phase records. `run_auc`
+(the AUC over all of a run's phases, `layered.summary`) only where one of the two trained in phases: elsewhere it
+is the AUC."""
 
 
 @dataclass(frozen=True)
@@ -145,7 +148,8 @@ def between_setups(setups: Sequence[Any]) -> list[Row]:
     rows = []
     for later, earlier in setup_pairs(setups):
         pair = paired_seeds(later, earlier)
-        for key, name, fmt in MEASURES:
+        phased = any(len(run.phases) > 1 for run in (*later.runs, *earlier.runs))
+        for key, name, fmt in (m for m in MEASURES if phased or m[0] != "run_auc"):
             a, b = _values(later.runs, key), _values(earlier.runs, key)
             if a is not None and b is not None and (result := (paired if pair else welch)(a, b)) is not None:
                 rows.append(Row(later.env, later.method, earlier.method, name, fmt, pair, result))

@@ -102,7 +102,8 @@ def _read_finished_run(path: Path) -> Run:
     return Run(
         path=path, env=results["env"], label=results.get("label") or _label(path),
         seed=int(results.get("seed", recipe["train"]["seed"])), realtime=_realtime(recipe),
-        final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)},
+        final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)}
+        | _run_auc(results["phases"]),
         curve=_curve(rows, str(final["phase"])), phases=tuple(results["phases"]), setting=_setting(recipe),
         **_whole_run(rows, recipe),
     )
@@ -127,6 +128,15 @@ def _read_unfinished_run(path: Path) -> Run:
         phases=(*before, {**final, "learn": last["learn"].split("+")}),
         stands=f"phase {last['phase']}, step {last['step']}", setting=_setting(recipe), **_whole_run(rows, recipe),
     )
+
+
+def _run_auc(phases: Sequence[dict[str, Any]]) -> dict[str, float]:
+    """`run_auc`, the normalised AUC over all of a run's own training steps: its phases' AUCs weighted by their
+    steps (their curves laid end to end), comparable between setups that train in different phases; none where a
+    phase has no AUC."""
+    if not phases or not all(isinstance(p.get("auc"), int | float) and p.get("steps") for p in phases):
+        return {}  # (a phase's AUC is null where its environment has no return range)
+    return {"run_auc": sum(p["auc"] * p["steps"] for p in phases) / sum(p["steps"] for p in phases)}
 
 
 NOT_A_SETTING = frozenset({"train.seed", "train.checkpoint_every", "env.workers", "env.threads", "log"})

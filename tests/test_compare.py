@@ -2,6 +2,7 @@
 comparisons of setups and phases."""
 
 import csv
+import json
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -10,7 +11,7 @@ import pytest
 
 from layered.compare import across_envs, holm, paired, welch
 from layered.report import write_report
-from layered.summary import Run, group
+from layered.summary import Run, find_runs, group
 
 # Student's t with 2 degrees of freedom has a closed form: two-sided p = 1 - |t| / sqrt(2 + t^2), and its
 # 0.975 quantile is 0.95 / sqrt(2 * 0.975 * 0.025)
@@ -188,6 +189,36 @@ def test_a_setup_that_continued_another_setups_stacks_is_compared_with_the_phase
     last = [probe("p/probe", k, v, (f"/r/p/tla-c-{k}", 1)) for k, v in enumerate([3.0, 5.0, 4.0])]
     for probes in (elsewhere, one_run, last):
         assert not [r for r in _compared(recipe + probes, tmp_path) if r["first"].startswith("probe phase")]
+
+
+def test_setups_trained_in_different_phases_are_compared_on_the_whole_runs_auc(tmp_path):
+    def write(name, seed, phases):
+        path = tmp_path / name / f"seed{seed}"
+        path.mkdir(parents=True)
+        (path / "results.json").write_text(json.dumps({"env": "Pendulum-v1", "seed": seed, "label": f"p/{name}",
+                                                       "phases": [{"phase": i, **p} for i, p in enumerate(phases)]}))
+        (path / "recipe.toml").write_text(f'[train]\nseed = {seed}\n[[layers]]\nname = "slow"\n')
+        (path / "metrics.csv").write_text("phase,learn,step,return_mean\n" + "".join(
+            f"{i},slow,{step},-900\n" for i in range(len(phases)) for step in (0, 10)))
+
+    # TLA-C: 40k steps at AUC 0.2, then 10k at 0.5 (seed 0) or 0.6 (seed 1): over the whole run
+    # (0.2 * 40000 + 0.5 * 10000) / 50000 = 0.26 and 0.28; TD3 50k steps at 0.3 and 0.32 in one phase
+    for seed, last in enumerate([0.5, 0.6]):
+        write("tla-c", seed, [{"learn": ["slow"], "steps": 40000, "auc": 0.2}, {"learn": ["fast"], "steps": 10000,
+                                                                               "auc": last}])
+        write("td3", seed, [{"learn": ["fast"], "steps": 50000, "auc": 0.3 + 0.02 * seed}])
+        write("td3-again", seed, [{"learn": ["fast"], "steps": 50000, "auc": 0.3 + 0.01 * seed}])
+    runs = find_runs([tmp_path])
+    assert [r.final["run_auc"] for r in runs if r.method == "tla-c"] == pytest.approx([0.26, 0.28])
+    rows = {(r["first"], r["second"], r["measure"]): r for r in _compared(runs, tmp_path / "report")}
+    # 0.27 against 0.31: the last phase's AUC alone (0.55 against 0.31) says the opposite
+    assert float(rows["tla-c", "td3", "AUC, whole run"]["difference"]) == pytest.approx(-0.04)
+    assert float(rows["tla-c", "td3", "AUC"]["difference"]) == pytest.approx(0.24)
+    # two setups of one phase each: their AUC once
+    assert ("td3-again", "td3", "AUC") in rows and ("td3-again", "td3", "AUC, whole run") not in rows
+    # a phase without an AUC (no return range) gives none for the whole run
+    write("no-range", 0, [{"learn": ["slow"], "steps": 10, "auc": None}, {"learn": ["fast"], "steps": 10, "auc": 0.5}])
+    assert "run_auc" not in find_runs([tmp_path / "no-range"])[0].final
 
 
 def _compared(runs, out):
