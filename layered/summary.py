@@ -103,7 +103,7 @@ def _read_finished_run(path: Path) -> Run:
         path=path, env=results["env"], label=results.get("label") or _label(path),
         seed=int(results.get("seed", recipe["train"]["seed"])), realtime=_realtime(recipe),
         final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)}
-        | _run_auc(results["phases"]),
+        | _run_auc(results["phases"], recipe),
         curve=_curve(rows, str(final["phase"])), phases=tuple(results["phases"]), setting=_setting(recipe),
         **_whole_run(rows, recipe),
     )
@@ -130,12 +130,13 @@ def _read_unfinished_run(path: Path) -> Run:
     )
 
 
-def _run_auc(phases: Sequence[dict[str, Any]]) -> dict[str, float]:
-    """`run_auc`, the normalised AUC over all of a run's own training steps: its phases' AUCs weighted by their
-    steps (their curves laid end to end), comparable between setups that train in different phases; none where a
-    phase has no AUC."""
-    if not phases or not all(isinstance(p.get("auc"), int | float) and p.get("steps") for p in phases):
-        return {}  # (a phase's AUC is null where its environment has no return range)
+def _run_auc(phases: Sequence[dict[str, Any]], recipe: dict[str, Any]) -> dict[str, float]:
+    """`run_auc`, the normalised AUC over all of a run's training steps: its phases' AUCs weighted by their steps
+    (their curves laid end to end), comparable between setups that train in different phases; none where a phase
+    has no AUC (no return range), or where a layer started from weights (steps of another run, not in these)."""
+    if not phases or any(layer.get("weights") for layer in recipe["layers"]) \
+            or not all(isinstance(p.get("auc"), int | float) and p.get("steps") for p in phases):
+        return {}
     return {"run_auc": sum(p["auc"] * p["steps"] for p in phases) / sum(p["steps"] for p in phases)}
 
 

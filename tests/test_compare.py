@@ -192,12 +192,12 @@ def test_a_setup_that_continued_another_setups_stacks_is_compared_with_the_phase
 
 
 def test_setups_trained_in_different_phases_are_compared_on_the_whole_runs_auc(tmp_path):
-    def write(name, seed, phases):
+    def write(name, seed, phases, weights=""):
         path = tmp_path / name / f"seed{seed}"
         path.mkdir(parents=True)
         (path / "results.json").write_text(json.dumps({"env": "Pendulum-v1", "seed": seed, "label": f"p/{name}",
                                                        "phases": [{"phase": i, **p} for i, p in enumerate(phases)]}))
-        (path / "recipe.toml").write_text(f'[train]\nseed = {seed}\n[[layers]]\nname = "slow"\n')
+        (path / "recipe.toml").write_text(f'[train]\nseed = {seed}\n[[layers]]\nname = "slow"\n' + weights)
         (path / "metrics.csv").write_text("phase,learn,step,return_mean\n" + "".join(
             f"{i},slow,{step},-900\n" for i in range(len(phases)) for step in (0, 10)))
 
@@ -219,6 +219,9 @@ def test_setups_trained_in_different_phases_are_compared_on_the_whole_runs_auc(t
     # a phase without an AUC (no return range) gives none for the whole run
     write("no-range", 0, [{"learn": ["slow"], "steps": 10, "auc": None}, {"learn": ["fast"], "steps": 10, "auc": 0.5}])
     assert "run_auc" not in find_runs([tmp_path / "no-range"])[0].final
+    # nor where a layer started from weights: the steps behind them are not in the run's phases
+    write("over-slow", 0, [{"learn": ["fast"], "steps": 10, "auc": 0.5}], f'weights = "{tmp_path}/slow.pt"\n')
+    assert "run_auc" not in find_runs([tmp_path / "over-slow"])[0].final
 
 
 def _compared(runs, out):
