@@ -160,10 +160,11 @@ TABLE_3: list[Metric] = [
     ("auc", "AUC", "{:.3f}"), ("return_mean", "return", "{:.1f}"), ("repetition", "AR", "{:.1%}"),
 ]
 PER_SEED: list[Metric] = [
-    ("return_mean", "return", "{:.1f}"), ("auc", "AUC", "{:.3f}"), ("fresh_final_return_mean", "final", "{:.1f}"),
-    ("fresh_best_return_mean", "best", "{:.1f}"), ("best_step", "best step", "{:.0f}"),
-    ("fresh_best_repetition", "best AR", "{:.1%}"),
+    ("return_mean", "return", "{:.1f}"), ("auc", "AUC", "{:.3f}"), ("run_auc", "AUC, whole run", "{:.3f}"),
+    ("fresh_final_return_mean", "final", "{:.1f}"), ("fresh_best_return_mean", "best", "{:.1f}"),
+    ("best_step", "best step", "{:.0f}"), ("fresh_best_repetition", "best AR", "{:.1%}"),
 ]
+"""The per-seed table's measures of a run's last phase (the whole run's AUC only where it trained in phases)."""
 FINAL_AND_BEST: list[Metric] = [
     ("fresh_final_return_mean", "final", "{:.1f}"), ("best_return_mean", "best as selected", "{:.1f}"),
     ("fresh_best_return_mean", "best", "{:.1f}"), ("fresh_final_repetition", "final AR", "{:.1%}"),
@@ -213,10 +214,11 @@ def per_seed_table(setup: Any) -> str:
     earlier phase's best weights on fresh episodes (for TLA, the slow layer alone), so that what the means
     hide shows: a seed that stands still, a phase that lowers the layer it started from."""
     earlier = [(i, p) for i, p in enumerate(setup.runs[0].phases[:-1]) if "fresh_best_return_mean" in p]
+    measures = [m for m in PER_SEED if m[0] != "run_auc" or len(setup.runs[0].phases) > 1]
     columns = [(f"phase {p['phase']} ({'+'.join(p.get('learn', []))}): best", "{:.1f}") for _, p in earlier]
-    columns += [(name, fmt) for _, name, fmt in PER_SEED]
+    columns += [(name, fmt) for _, name, fmt in measures]
     table = np.array([[number(r.phases[i].get("fresh_best_return_mean")) if i < len(r.phases) - 1 else np.nan
-                       for i, _ in earlier] + [number(r.final.get(key)) for key, _, _ in PER_SEED]
+                       for i, _ in earlier] + [number(r.final.get(key)) for key, _, _ in measures]
                       for r in setup.runs])
     lines = ["| " + " | ".join(["seed", *(name for name, _ in columns)]) + " |", "|---" * (len(columns) + 1) + "|"]
     for r, values in zip(setup.runs, table, strict=True):

@@ -6,6 +6,7 @@ import io
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -160,8 +161,6 @@ def test_grouping_orders_methods_as_the_paper():
 
 
 def test_runs_of_different_recipes_under_one_label_are_setups_of_their_own():
-    from dataclasses import replace
-
     from layered.summary import _setting
 
     def at(seed, penalty, order, older=False):
@@ -359,17 +358,22 @@ def test_the_per_seed_table_shows_each_seed_and_its_earlier_phases(tmp_path):
         last = {"phase": 1, "learn": ["fast"], "return_mean": final + 1.0, "auc": 0.25 * (seed + 1),
                 "fresh_final_return_mean": final, "fresh_best_return_mean": best, "best_step": 5000 * seed,
                 "fresh_best_repetition": 0.5}
-        return Run(Path(f"/r/tla-{seed}"), "Hopper-v5", "hopper/tla-realtime", seed, True,
-                           {k: v for k, v in last.items() if k != "learn"}, ((0, 1.0),), phases=(slow, last))
+        final = {k: v for k, v in last.items() if k != "learn"} | {"run_auc": 0.1 * (seed + 1)}  # (as read)
+        return Run(Path(f"/r/tla-{seed}"), "Hopper-v5", "hopper/tla-realtime", seed, True, final, ((0, 1.0),),
+                   phases=(slow, last))
 
     setups = group([two_phases(0, 900.0, 300.0, 400.0), two_phases(1, 500.0, 700.0, 1000.0)])
     text = write_report(setups, tmp_path)
     table = text.split("### Hopper-v5, hopper/tla-realtime")[1].split("##")[0]
-    assert "| seed | phase 0 (slow): best | return | AUC | final | best | best step | best AR |" in table
-    assert "| 0 | 900.0 | 301.0 | 0.250 | 300.0 | 400.0 | 0 | 50.0% |" in table
-    assert "| 1 | 500.0 | 701.0 | 0.500 | 700.0 | 1000.0 | 5000 | 50.0% |" in table
-    assert ("| mean ± std | 700.0 ± 200.0 | 501.0 ± 200.0 | 0.375 ± 0.125 | 500.0 ± 200.0 | 700.0 ± 300.0 "
-            "| 2500 ± 2500 | 50.0% ± 0.0% |") in table
+    assert ("| seed | phase 0 (slow): best | return | AUC | AUC, whole run | final | best | best step | best AR |"
+            in table)
+    assert "| 0 | 900.0 | 301.0 | 0.250 | 0.100 | 300.0 | 400.0 | 0 | 50.0% |" in table
+    assert "| 1 | 500.0 | 701.0 | 0.500 | 0.200 | 700.0 | 1000.0 | 5000 | 50.0% |" in table
+    assert ("| mean ± std | 700.0 ± 200.0 | 501.0 ± 200.0 | 0.375 ± 0.125 | 0.150 ± 0.050 | 500.0 ± 200.0 "
+            "| 700.0 ± 300.0 | 2500 ± 2500 | 50.0% ± 0.0% |") in table
+    # a setup of one phase: its AUC once
+    one = group([replace(two_phases(0, 900.0, 300.0, 400.0), label="hopper/td3-realtime", phases=())])
+    assert "| seed | return | AUC | final | best | best step | best AR |" in write_report(one, tmp_path / "one")
     rows = (tmp_path / "seeds.csv").read_text().splitlines()
     assert rows[0].startswith("env,label,method,seed,phase,learn,auc,best_step,")
     assert len(rows) == 5 and rows[1].startswith("Hopper-v5,hopper/tla-realtime,tla-realtime,0,0,slow,,,")
