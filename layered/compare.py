@@ -148,12 +148,18 @@ def between_setups(setups: Sequence[Any]) -> list[Row]:
     rows = []
     for later, earlier in setup_pairs(setups):
         pair = paired_seeds(later, earlier)
-        phased = any(len(run.phases) > 1 for run in (*later.runs, *earlier.runs))
-        for key, name, fmt in (m for m in MEASURES if phased or m[0] != "run_auc"):
+        whole = phased((*later.runs, *earlier.runs))
+        for key, name, fmt in (m for m in MEASURES if whole or m[0] != "run_auc"):
             a, b = _values(later.runs, key), _values(earlier.runs, key)
             if a is not None and b is not None and (result := (paired if pair else welch)(a, b)) is not None:
                 rows.append(Row(later.env, later.method, earlier.method, name, fmt, pair, result))
     return rows
+
+
+def phased(runs: Sequence[Any]) -> bool:
+    """Whether any of the runs trained in phases: where the whole run's AUC (`run_auc`) differs from the AUC, and
+    so is reported beside it."""
+    return any(len(run.phases) > 1 for run in runs)
 
 
 def paired_seeds(first: Any, second: Any) -> bool:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from layered.compare import (ACROSS_COLUMNS, COLUMNS, RESAMPLES, across_csv_row, across_envs, across_table, adjusted,
-                             between_phases, between_setups, comparisons_table, csv_row, number)
+                             between_phases, between_setups, comparisons_table, csv_row, number, phased)
 from layered.progress import count
 
 DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]  # the thresholds of the paper's Fig. 2
@@ -214,7 +214,7 @@ def per_seed_table(setup: Any) -> str:
     earlier phase's best weights on fresh episodes (for TLA, the slow layer alone), so that what the means
     hide shows: a seed that stands still, a phase that lowers the layer it started from."""
     earlier = [(i, p) for i, p in enumerate(setup.runs[0].phases[:-1]) if "fresh_best_return_mean" in p]
-    measures = [m for m in PER_SEED if m[0] != "run_auc" or len(setup.runs[0].phases) > 1]
+    measures = [m for m in PER_SEED if m[0] != "run_auc" or phased(setup.runs)]
     columns = [(f"phase {p['phase']} ({'+'.join(p.get('learn', []))}): best", "{:.1f}") for _, p in earlier]
     columns += [(name, fmt) for _, name, fmt in measures]
     table = np.array([[number(r.phases[i].get("fresh_best_return_mean")) if i < len(r.phases) - 1 else np.nan
