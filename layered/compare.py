@@ -34,8 +34,8 @@ MEASURES: tuple[tuple[str, str, str], ...] = (
 )
 """What setups are compared on (a `results.json` key, its name, the format of a difference), where every run
 of both has it; phases are compared on the first two, the fresh-episode returns each phase records. `run_auc`
-(the AUC over all of a run's phases, `layered.summary`) only where one of the two trained in phases: elsewhere it
-is the AUC."""
+(the AUC over all of a run's phases and those behind the stack it continued, `layered.summary`) only where one of
+the two trained in phases (`phased`): elsewhere it is the AUC."""
 
 
 @dataclass(frozen=True)
@@ -157,9 +157,9 @@ def between_setups(setups: Sequence[Any]) -> list[Row]:
 
 
 def phased(runs: Sequence[Any]) -> bool:
-    """Whether any of the runs trained in phases: where the whole run's AUC (`run_auc`) differs from the AUC, and
-    so is reported beside it."""
-    return any(len(run.phases) > 1 for run in runs)
+    """Whether any of the runs trained in phases, or continued a stack that another run's phases trained: where the
+    whole run's AUC (`run_auc`) differs from the AUC, and so is reported beside it."""
+    return any(len(run.phases) > 1 or run.continues is not None for run in runs)
 
 
 def paired_seeds(first: Any, second: Any) -> bool:

@@ -164,7 +164,8 @@ PER_SEED: list[Metric] = [
     ("fresh_final_return_mean", "final", "{:.1f}"), ("fresh_best_return_mean", "best", "{:.1f}"),
     ("best_step", "best step", "{:.0f}"), ("fresh_best_repetition", "best AR", "{:.1%}"),
 ]
-"""The per-seed table's measures of a run's last phase (the whole run's AUC only where it trained in phases)."""
+"""The per-seed table's measures of a run's last phase (the whole run's AUC only where it trained in phases, or
+continued a stack that another run's phases trained: `compare.phased`)."""
 FINAL_AND_BEST: list[Metric] = [
     ("fresh_final_return_mean", "final", "{:.1f}"), ("best_return_mean", "best as selected", "{:.1f}"),
     ("fresh_best_return_mean", "best", "{:.1f}"), ("fresh_final_repetition", "final AR", "{:.1%}"),
@@ -394,10 +395,13 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
                   "seed (a setup whose runs continued another's stacks: its first phase against the phase it "
                   "continued): the difference of the means with its 95% confidence interval, the two-sided p-value, "
                   "and how often the first is above the second (over all pairs of a seed of each, or over the seeds; "
-                  "ties count half). \"p, Holm\" is the p-value adjusted for every comparison of this report (Holm's "
-                  "method): where it is below 0.05, the chance that any of them is below by chance alone is at most "
-                  "5%. With few seeds these tests have little power: a p-value above 0.05 says that the seeds do not "
-                  "tell the two apart, not that the two are the same. The rows are in `comparisons.csv`.", "",
+                  "ties count half). \"AUC\" is the last phase's, as in the paper; \"AUC, whole run\", where one of "
+                  "the two trained in phases, counts every step behind each run's stack (each phase's AUC weighted by "
+                  "its steps, those of the run whose stack it continued first). \"p, Holm\" is the p-value adjusted "
+                  "for every comparison of this report (Holm's method): where it is below 0.05, the chance that any of "
+                  "them is below by chance alone is at most 5%. With few seeds these tests have little power: a "
+                  "p-value above 0.05 says that the seeds do not tell the two apart, not that the two are the same. "
+                  "The rows are in `comparisons.csv`.", "",
                   comparisons_table(compared), ""]
     across = across_envs(setups)
     if across:

@@ -11,7 +11,7 @@ import tomllib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -99,13 +99,14 @@ def _read_finished_run(path: Path) -> Run:
     recipe = tomllib.loads((path / "recipe.toml").read_text())
     final = results["phases"][-1]
     rows = _metrics(path)
+    start = _start_weights(recipe)
     return Run(
         path=path, env=results["env"], label=results.get("label") or _label(path),
         seed=int(results.get("seed", recipe["train"]["seed"])), realtime=_realtime(recipe),
         final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)}
-        | _run_auc(results["phases"], recipe),
+        | _run_auc(results["phases"], recipe, _continues(start[2])),
         curve=_curve(rows, str(final["phase"])), phases=tuple(results["phases"]), setting=_setting(recipe),
-        **_whole_run(rows, recipe),
+        **_whole_run(rows, start),
     )
 
 
@@ -126,16 +127,21 @@ def _read_unfinished_run(path: Path) -> Run:
         path=path, env=recipe["env"]["id"], label=info.get("label") or _label(path), seed=int(recipe["train"]["seed"]),
         realtime=_realtime(recipe), final=final, curve=curve,
         phases=(*before, {**final, "learn": last["learn"].split("+")}),
-        stands=f"phase {last['phase']}, step {last['step']}", setting=_setting(recipe), **_whole_run(rows, recipe),
+        stands=f"phase {last['phase']}, step {last['step']}", setting=_setting(recipe),
+        **_whole_run(rows, _start_weights(recipe)),
     )
 
 
-def _run_auc(phases: Sequence[dict[str, Any]], recipe: dict[str, Any]) -> dict[str, float]:
+def _run_auc(phases: Sequence[dict[str, Any]], recipe: dict[str, Any], end: _End | None) -> dict[str, float]:
     """`run_auc`, the normalised AUC over all of a run's training steps: its phases' AUCs weighted by their steps
-    (their curves laid end to end), comparable between setups that train in different phases; none where a phase
-    has no AUC (no return range), or where a layer started from weights (steps of another run, not in these)."""
-    if not phases or any(layer.get("weights") for layer in recipe["layers"]) \
-            or not all(isinstance(p.get("auc"), int | float) and p.get("steps") for p in phases):
+    (their curves laid end to end), comparable between setups that train in different phases. Where its layers
+    started from weights, the phases behind the stack it continues (`end`) come first, as on the whole-run curve;
+    none where those are not known, or where a phase has no AUC (no return range)."""
+    if any(layer.get("weights") for layer in recipe["layers"]):
+        if end is None or end.behind is None:
+            return {}
+        phases = [*end.behind, *phases]
+    if not phases or not all(isinstance(p.get("auc"), int | float) and p.get("steps") for p in phases):
         return {}
     return {"run_auc": sum(p["auc"] * p["steps"] for p in phases) / sum(p["steps"] for p in phases)}
 
@@ -184,21 +190,35 @@ def _curve(rows: Sequence[dict[str, str]], phase: str) -> tuple[tuple[int, float
     return tuple((int(r["step"]), float(r["return_mean"])) for r in rows if r["phase"] == phase)
 
 
-def _whole_run(rows: Sequence[dict[str, str]], recipe: dict[str, Any]) -> dict[str, Any]:
-    """A run's `Run` fields over the whole of its training, from the steps behind its start weights on."""
-    before, sources, ends = _start_weights(recipe)
+class _End(NamedTuple):
+    """Where a layer's start weights were saved: the run directory (resolved), the last phase that trained the layer
+    there, and every phase of training behind that stack as `results.json` holds them (that run's up to this one,
+    those behind its own start weights first), None where some cannot be read."""
+
+    source: Path
+    phase: int
+    behind: tuple[dict[str, Any], ...] | None
+
+
+def _whole_run(rows: Sequence[dict[str, str]], start: tuple[int, frozenset[Path], list[_End | None]]) \
+        -> dict[str, Any]:
+    """A run's `Run` fields over the whole of its training, from the steps behind its start weights on (`start`,
+    as `_start_weights` gives them)."""
+    before, sources, ends = start
+    end = _continues(ends)
     return {"total_curve": _total_curve(rows, before), "phase_starts": _phase_starts(rows, before),
-            "trained_before": before, "started_from": sources, "continues": _continues(ends)}
+            "trained_before": before, "started_from": sources,
+            "continues": None if end is None else (end.source, end.phase)}
 
 
 def _start_weights(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) \
-        -> tuple[int, frozenset[Path], list[tuple[Path, int] | None]]:
+        -> tuple[int, frozenset[Path], list[_End | None]]:
     """The environment steps of training behind the weights a run's layers started from (`weights`), the run
     directories they came from (resolved), and for each such layer the run and phase that last trained it (None
     where none is known): each from the run directory holding that checkpoint, up to the end of the last phase
     that trained the layer, with that run's own start weights behind it; a file outside a run directory (or in a
     run since moved) adds nothing."""
-    steps, sources, ends = 0, frozenset[Path](), list[tuple[Path, int] | None]()
+    steps, sources, ends = 0, frozenset[Path](), list[_End | None]()
     for layer in recipe["layers"]:
         if not layer.get("weights"):
             continue
@@ -212,24 +232,40 @@ def _start_weights(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) 
             rows = _metrics(source)
             learns = {r["phase"]: r["learn"].split("+") for r in rows}.values()  # each phase's, in order
             learned = [i for i, names in enumerate(learns) if layer["name"] in names]
-            earlier, behind, _ = _start_weights(tomllib.loads((source / "recipe.toml").read_text()), seen | {source})
+            earlier, behind, before = _start_weights(tomllib.loads((source / "recipe.toml").read_text()),
+                                                     seen | {source})
             sources |= {source, *behind}
             if learned:
                 steps = max(steps, earlier + sum(_phase_ends(rows)[: learned[-1] + 1]))
-                ends[-1] = (source, learned[-1])
+                ends[-1] = _End(source, learned[-1], _phases_until(source, learned[-1], before))
         except (OSError, ValueError, KeyError, TypeError, tomllib.TOMLDecodeError) as e:
             print(f"layered: warning: {source}, where layer {layer['name']!r} started from, cannot be read "
                   f"({e.__class__.__name__}: {e}); its steps are not counted", file=sys.stderr)
     return steps, sources, ends
 
 
-def _continues(ends: Sequence[tuple[Path, int] | None]) -> tuple[Path, int] | None:
-    """The run and phase a run's stack continues from: where every layer it started from weights came from one run,
-    that run and the latest phase that trained one of them (the stack of that phase's end); else None."""
+def _continues(ends: Sequence[_End | None]) -> _End | None:
+    """Where a run's stack continues from: where every layer it started from weights came from one run, that run's
+    end of the latest phase that trained one of them (the stack of that phase's end); else None."""
     known = [end for end in ends if end is not None]
-    if not known or len(known) < len(ends) or len({source for source, _ in known}) > 1:
+    if not known or len(known) < len(ends) or len({end.source for end in known}) > 1:
         return None
-    return known[0][0], max(phase for _, phase in known)
+    return max(known, key=lambda end: end.phase)
+
+
+def _phases_until(source: Path, phase: int, ends: Sequence[_End | None]) -> tuple[dict[str, Any], ...] | None:
+    """The phases of training behind the stack of run `source` at the end of its phase `phase`: its own up to that
+    one (results.json, or the finished phases of a run still training), those behind the stack it continues (`ends`:
+    its layers' start weights) first; None where some are not known."""
+    earlier = (end.behind if (end := _continues(ends)) else None) if ends else ()
+    file = next((f for f in (source / "results.json", source / PHASES_FILE) if f.is_file()), None)
+    if earlier is None or file is None:
+        return None
+    try:
+        phases = tuple(p for p in json.loads(file.read_text())["phases"] if p["phase"] <= phase)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return (*earlier, *phases) if len(phases) == phase + 1 else None
 
 
 def _phase_ends(rows: Sequence[dict[str, str]]) -> list[int]:

@@ -192,14 +192,17 @@ def test_a_setup_that_continued_another_setups_stacks_is_compared_with_the_phase
 
 
 def test_setups_trained_in_different_phases_are_compared_on_the_whole_runs_auc(tmp_path):
-    def write(name, seed, phases, weights=""):
+    def write(name, seed, phases, weights=None):
         path = tmp_path / name / f"seed{seed}"
         path.mkdir(parents=True)
         (path / "results.json").write_text(json.dumps({"env": "Pendulum-v1", "seed": seed, "label": f"p/{name}",
                                                        "phases": [{"phase": i, **p} for i, p in enumerate(phases)]}))
-        (path / "recipe.toml").write_text(f'[train]\nseed = {seed}\n[[layers]]\nname = "slow"\n' + weights)
+        layers = "".join(f'[[layers]]\nname = "{layer}"\n' + (f'weights = "{(weights or {}).get(layer)}"\n'
+                                                                if layer in (weights or {}) else "")
+                         for layer in ("slow", "fast"))
+        (path / "recipe.toml").write_text(f"[train]\nseed = {seed}\n" + layers)
         (path / "metrics.csv").write_text("phase,learn,step,return_mean\n" + "".join(
-            f"{i},slow,{step},-900\n" for i in range(len(phases)) for step in (0, 10)))
+            f"{i},{'+'.join(p['learn'])},{step},-900\n" for i, p in enumerate(phases) for step in (0, 10)))
 
     # TLA-C: 40k steps at AUC 0.2, then 10k at 0.5 (seed 0) or 0.6 (seed 1): over the whole run
     # (0.2 * 40000 + 0.5 * 10000) / 50000 = 0.26 and 0.28; TD3 50k steps at 0.3 and 0.32 in one phase
@@ -219,9 +222,26 @@ def test_setups_trained_in_different_phases_are_compared_on_the_whole_runs_auc(t
     # a phase without an AUC (no return range) gives none for the whole run
     write("no-range", 0, [{"learn": ["slow"], "steps": 10, "auc": None}, {"learn": ["fast"], "steps": 10, "auc": 0.5}])
     assert "run_auc" not in find_runs([tmp_path / "no-range"])[0].final
-    # nor where a layer started from weights: the steps behind them are not in the run's phases
-    write("over-slow", 0, [{"learn": ["fast"], "steps": 10, "auc": 0.5}], f'weights = "{tmp_path}/slow.pt"\n')
-    assert "run_auc" not in find_runs([tmp_path / "over-slow"])[0].final
+    # a fast phase over each seed's slow layer (phase 0 of tla-c) continues its 40k steps at AUC 0.2:
+    # (0.2 * 40000 + 0.8 * 10000) / 50000 = 0.32 and (8000 + 0.9 * 10000) / 50000 = 0.34, against TD3's 0.3 and 0.32
+    for seed in (0, 1):
+        write("over-slow", seed, [{"learn": ["fast"], "steps": 10000, "auc": 0.8 + 0.1 * seed}],
+              {"slow": f"{tmp_path}/tla-c/seed{{seed}}/checkpoints/slow.pt"})
+    over_slow = find_runs([tmp_path / "over-slow"])
+    assert [r.final["run_auc"] for r in over_slow] == pytest.approx([0.32, 0.34])
+    rows = {(r["first"], r["second"], r["measure"]): r for r in _compared(runs + over_slow, tmp_path / "again")}
+    assert float(rows["over-slow", "td3", "AUC, whole run"]["difference"]) == pytest.approx(0.02)
+    # and a run over that one's fast layer continues both: (8000 + 8000 + 0.5 * 10000) / 60000 = 0.35
+    write("over-fast", 0, [{"learn": ["fast"], "steps": 10000, "auc": 0.5}],
+          {"fast": f"{tmp_path}/over-slow/seed0/checkpoints/fast.pt"})
+    assert find_runs([tmp_path / "over-fast"])[0].final["run_auc"] == pytest.approx(0.35)
+    # none where the weights came from a file outside a run, or from a phase whose results cannot be read
+    write("from-file", 0, [{"learn": ["fast"], "steps": 10, "auc": 0.5}], {"slow": f"{tmp_path}/slow.pt"})
+    assert "run_auc" not in find_runs([tmp_path / "from-file"])[0].final
+    (tmp_path / "tla-c" / "seed1" / "results.json").write_text("{")
+    write("over-broken", 1, [{"learn": ["fast"], "steps": 10, "auc": 0.5}],
+          {"slow": f"{tmp_path}/tla-c/seed1/checkpoints/slow.pt"})
+    assert "run_auc" not in find_runs([tmp_path / "over-broken"])[0].final
 
 
 def _compared(runs, out):
