@@ -192,8 +192,9 @@ def _curve(rows: Sequence[dict[str, str]], phase: str) -> tuple[tuple[int, float
 
 class _End(NamedTuple):
     """Where a layer's start weights were saved: the run directory (resolved), the last phase that trained the layer
-    there, and every phase of training behind that stack as `results.json` holds them (that run's up to this one,
-    those behind its own start weights first), None where some cannot be read."""
+    there (-1 where that run did not train it: it was saved as it came in), and every phase of training behind that
+    stack as `results.json` holds them (that run's up to this one, those behind its own start weights first), None
+    where some cannot be read."""
 
     source: Path
     phase: int
@@ -216,8 +217,8 @@ def _start_weights(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) 
     """The environment steps of training behind the weights a run's layers started from (`weights`), the run
     directories they came from (resolved), and for each such layer the run and phase that last trained it (None
     where none is known): each from the run directory holding that checkpoint, up to the end of the last phase
-    that trained the layer, with that run's own start weights behind it; a file outside a run directory (or in a
-    run since moved) adds nothing."""
+    that trained the layer (that run's start, where it trained it in none), with that run's own start weights behind
+    it; a file outside a run directory (or in a run since moved) adds nothing."""
     steps, sources, ends = 0, frozenset[Path](), list[_End | None]()
     for layer in recipe["layers"]:
         if not layer.get("weights"):
@@ -235,9 +236,9 @@ def _start_weights(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) 
             earlier, behind, before = _start_weights(tomllib.loads((source / "recipe.toml").read_text()),
                                                      seen | {source})
             sources |= {source, *behind}
-            if learned:
-                steps = max(steps, earlier + sum(_phase_ends(rows)[: learned[-1] + 1]))
-                ends[-1] = _End(source, learned[-1], _phases_until(source, learned[-1], before))
+            last = learned[-1] if learned else -1  # -1: a layer that run did not train, as it was at its start
+            steps = max(steps, earlier + sum(_phase_ends(rows)[: last + 1]))
+            ends[-1] = _End(source, last, _phases_until(source, last, before))
         except (OSError, ValueError, KeyError, TypeError, tomllib.TOMLDecodeError) as e:
             print(f"layered: warning: {source}, where layer {layer['name']!r} started from, cannot be read "
                   f"({e.__class__.__name__}: {e}); its steps are not counted", file=sys.stderr)
@@ -246,11 +247,13 @@ def _start_weights(recipe: dict[str, Any], seen: frozenset[Path] = frozenset()) 
 
 def _continues(ends: Sequence[_End | None]) -> _End | None:
     """Where a run's stack continues from: where every layer it started from weights came from one run, that run's
-    end of the latest phase that trained one of them (the stack of that phase's end); else None."""
+    end of the latest phase that trained one of them (the stack of that phase's end: a layer that run did not train
+    is in it as it came in); else None, also where that run trained none of them."""
     known = [end for end in ends if end is not None]
     if not known or len(known) < len(ends) or len({end.source for end in known}) > 1:
         return None
-    return max(known, key=lambda end: end.phase)
+    latest = max(known, key=lambda end: end.phase)
+    return latest if latest.phase >= 0 else None
 
 
 def _phases_until(source: Path, phase: int, ends: Sequence[_End | None]) -> tuple[dict[str, Any], ...] | None:

@@ -90,6 +90,15 @@ def test_a_run_started_from_another_runs_weights_continues_that_runs_steps(tmp_p
     write(tmp_path / "e", "0,slow+fast,0,-150\n0,slow+fast,1000,-140\n",
           [("slow", f"{tmp_path}/a/seed1/checkpoints/slow.pt"), ("fast", f"{tmp_path}/a/seed1/checkpoints/fast.pt")])
     assert find_runs([tmp_path / "e"])[0].continues == ((tmp_path / "a" / "seed1").resolve(), 2)
+    # b's slow layer, which b did not train (a's, 10002 steps behind it), with b's fast one: b's stack at the end of
+    # its phase 0; b's slow layer alone: a's steps behind it, but none of b's phases trained it, so no stack of b's
+    write(tmp_path / "f", "0,fast,0,-140\n0,fast,1000,-135\n",
+          [("slow", f"{tmp_path}/b/checkpoints/slow.pt"), ("fast", f"{tmp_path}/b/checkpoints/fast.pt")])
+    write(tmp_path / "g", "0,fast,0,-250\n0,fast,1000,-200\n",
+          [("slow", f"{tmp_path}/b/checkpoints/slow.pt"), ("fast", None)])
+    f, g = (find_runs([tmp_path / name])[0] for name in "fg")
+    assert f.continues == ((tmp_path / "b").resolve(), 0) and f.trained_before == 15002
+    assert g.continues is None and g.trained_before == 10002 and g.phase_starts == ()
     # a damaged run behind the weights is a warning, not a damaged run here
     (tmp_path / "a" / "seed1" / "metrics.csv").write_text("phase,step\n0,x\n")
     with contextlib.redirect_stderr(io.StringIO()) as err:
