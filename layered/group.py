@@ -53,7 +53,7 @@ from layered.group_state import (
 )
 from layered.heap import keep_freed_memory
 from layered.interrupt import StopRequest, Stopped
-from layered.learner_set import build_learners, keep_start_weights, start_from_weights
+from layered.learner_set import build_learners, keep_start_weights, precisions, start_from_weights
 from layered.learners.choice_group import ChoiceLearnerGroup, GateTD3Group, TempoRLGroup
 from layered.learners.td3 import TD3Config
 from layered.learners.td3_group import TD3Group
@@ -221,7 +221,7 @@ def _open_seed(recipe: Recipe, out: Path, learners: dict[str, Any], info: RunInf
                saved: GroupCheckpoint | None, k: int) -> Seed:
     """Seed k's run directory and logs, new or (from `saved`) as the group's checkpoint left them."""
     if saved is None:  # (with a checkpoint of the group, its seeds' files are kept as they are)
-        prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)
+        prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume, precisions(learners))
     resumed_at = None if saved is None else (saved.states[k].phase, saved.loop.step)
     seed = Seed(recipe, out, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
                 CsvLog(out / "episodes.csv", EPISODE_FIELDS),

@@ -81,6 +81,11 @@ def start_from_weights(recipe: Recipe, learners: dict[str, Learner]) -> None:
         raise RecipeError("recipe", problems)
 
 
+def precisions(learners: Mapping[str, Learner]) -> dict[str, str]:
+    """What each layer's updates compute in (`Learner.computes_in`), as its run.json records it."""
+    return {name: learner.computes_in() for name, learner in learners.items()}
+
+
 def keep_start_weights(recipe: Recipe, learners: dict[str, Learner], folder: Path) -> None:
     """Copy the start weights into the run's checkpoints as the layer's final and best, so that the
     run evaluates without the original file (a phase that trains the layer replaces them)."""

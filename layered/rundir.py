@@ -10,7 +10,7 @@ import os
 import shutil
 import socket
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -143,9 +143,11 @@ def clear_run_dir(run_dir: Path) -> None:
                 path.unlink(missing_ok=True)
 
 
-def prepare_run_dir(run_dir: Path, recipe_text: str, info: RunInfo, resume: bool) -> None:
-    """Create the run directory with its recipe and run.json; a run stopped before its first
-    checkpoint lost nothing and starts over. Without `resume`, a run with progress is refused."""
+def prepare_run_dir(run_dir: Path, recipe_text: str, info: RunInfo, resume: bool,
+                    precision: Mapping[str, str] | None = None) -> None:
+    """Create the run directory with its recipe and run.json, which records what each layer's updates compute in
+    (`precision`: `precision = "auto"` depends on the machine); a run stopped before its first checkpoint lost
+    nothing and starts over. Without `resume`, a run with progress is refused."""
     if not resume:
         check_new_run_dir(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -154,8 +156,8 @@ def prepare_run_dir(run_dir: Path, recipe_text: str, info: RunInfo, resume: bool
         return
     write_atomically(run_dir / "recipe.toml", recipe_text)
     write_atomically(run_dir / "run.json", json.dumps(
-        {"label": info.label, "max_steps": info.max_steps, "plugins": list(info.plugins), "group": list(info.group)},
-        indent=2))
+        {"label": info.label, "max_steps": info.max_steps, "plugins": list(info.plugins), "group": list(info.group)}
+        | ({"precision": dict(precision)} if precision else {}), indent=2))
 
 
 def read_run_info(run_dir: Path) -> RunInfo:

@@ -18,7 +18,7 @@ from layered.errors import Diverged
 from layered.events import EventLog
 from layered.events import available as events_available
 from layered.interrupt import StopRequest
-from layered.learner_set import build_learners, keep_start_weights, start_from_weights
+from layered.learner_set import build_learners, keep_start_weights, precisions, start_from_weights
 from layered.logs import CsvLog
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.results import EPISODE_FIELDS, metrics_fields, write_results
@@ -116,7 +116,8 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
               progress: bool = True, change: Change | None = None) -> list[dict[str, Any]]:
     """`train`, from the run directory on, while this process holds its lock."""
     max_steps = info.max_steps
-    prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume)  # so that a run killed early resumes
+    # (written before anything else, so that a run killed early resumes)
+    prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume, precisions(learners))
     checkpoint = out / RUN_CHECKPOINT
     previous = changed_from(out, change) if resume else None
     journal = ReplayJournal(replay_folder(checkpoint))

@@ -1,6 +1,8 @@
 """The updates' precision: what `auto` resolves to, the actor's squashing kept in float32, the TF32 region
 and its refusal off a GPU, and a resumed learner keeping the precision it was trained in."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -138,3 +140,33 @@ def test_a_group_keeps_its_precision_across_a_resume_and_gives_it_to_its_seeds(m
     assert (trained.precision, resumed.precision) == ("bfloat16", "float32")
     resumed.load_resume_state(trained.resume_state())
     assert resumed.precision == "bfloat16" and resumed.seed_state_dict(1)["precision"] == "bfloat16"
+
+
+def test_a_run_records_what_auto_computed_in_and_the_report_tells_the_machines_runs_apart(monkeypatch, tmp_path, tiny):
+    from pathlib import Path
+
+    from layered.group import group_recipes, train_group
+    from layered.recipe import load_recipe
+    from layered.runs import train
+    from layered.summary import find_runs, group
+
+    recipe = Path(__file__).parent.parent / "recipes" / "pendulum" / "tla-c.toml"
+    monkeypatch.setattr(precision, "cpu_flags", lambda: frozenset({"avx512_bf16"}))
+    train(load_recipe(recipe, tiny), tmp_path / "bf16", max_steps=150, progress=False, label="p/tla-c")
+    monkeypatch.setattr(precision, "cpu_flags", lambda: frozenset({"avx2"}))
+    recipes = group_recipes(recipe, [1, 2], tiny)
+    train_group(recipes, [tmp_path / "group" / f"seed{k}" for k in (1, 2)], "p/tla-c", max_steps=150, progress=False)
+    # one named in the recipe is recorded as set
+    train(load_recipe(recipe, [*tiny, "layers.fast.learner.precision=bfloat16"]), tmp_path / "set", max_steps=150,
+          progress=False, label="p/tla-c")
+    recorded = {run: json.loads((tmp_path / run / "run.json").read_text())["precision"]
+                for run in ("bf16", "group/seed1", "group/seed2", "set")}
+    assert recorded == {"bf16": {"slow": "bfloat16", "fast": "bfloat16"},
+                        "group/seed1": {"slow": "float32", "fast": "float32"},
+                        "group/seed2": {"slow": "float32", "fast": "float32"},
+                        "set": {"slow": "float32", "fast": "bfloat16"}}
+    setups = group(find_runs([tmp_path]))
+    assert sorted((s.label, sorted(r.seed for r in s.runs)) for s in setups) == [
+        ("p/tla-c layers.fast.learner.precision=bfloat16 layers.slow.learner.precision=bfloat16", [0]),
+        ("p/tla-c layers.fast.learner.precision=bfloat16 layers.slow.learner.precision=float32", [0]),
+        ("p/tla-c layers.fast.learner.precision=float32 layers.slow.learner.precision=float32", [1, 2])]

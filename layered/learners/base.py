@@ -94,6 +94,12 @@ class Learner(ABC):
         what `act(obs, explore=False)` returns out. `layered export` writes it."""
         raise NotImplementedError(f"the {self.config.kind!r} learner has no exportable policy (Learner.policy)")
 
+    def computes_in(self) -> str:
+        """The precision its updates' products are computed in, as resolved on its device and from the weights it
+        started from: `float32` unless the learner has a precision setting (TD3's `auto` depends on the machine, so
+        each run records this in its run.json)."""
+        return "float32"
+
     @abstractmethod
     def act_macs(self) -> int:
         """Multiply-accumulates of one `act` call (the networks it evaluates), for the compute measure."""

@@ -142,6 +142,9 @@ class TD3WithChoice(Learner):
     def act_macs(self) -> int:
         return self.td3.act_macs() + self.choice.macs()
 
+    def computes_in(self) -> str:
+        return self.td3.precision
+
     def update(self) -> Losses | None:
         losses = self.td3.update()
         if losses is not None:

@@ -68,7 +68,8 @@ class TD3Config(LearnerConfig):
     hardware (GPUs that do; CPUs with AVX-512 BF16, AMX or Arm BF16), float32 elsewhere. bfloat16 learns
     as float32 does on the tasks checked in docs/experiments.md, at about twice the update rate on such a CPU.
     A checkpoint records the precision its learner computed in; with `auto`, a run resumed from it
-    (or started from its weights) keeps that precision wherever it runs."""
+    (or started from its weights) keeps that precision wherever it runs. A run's run.json records it too,
+    and `layered report` counts a recipe's runs in bfloat16 and in float32 as two setups."""
     compile: Literal["off", "inductor", "cudagraphs"] = "off"
     """Compile the critic and actor steps with torch.compile: `inductor` (its default mode), or
     `cudagraphs` (GPU only): the update replayed as CUDA graphs. The first updates then wait for
@@ -269,6 +270,9 @@ class TD3(Learner):
 
     def act_macs(self) -> int:
         return linear_macs(self.actor)
+
+    def computes_in(self) -> str:
+        return self.precision
 
     def observe(self, transition: Transition) -> None:
         self.buffer.add(transition)
