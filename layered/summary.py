@@ -96,7 +96,7 @@ def _readable(path: Path, read: Callable[[Path], Run]) -> Run:
 
 def _read_finished_run(path: Path) -> Run:
     results = json.loads((path / "results.json").read_text())
-    recipe = _recipe(path)
+    recipe = _recipe(path, _run_json(path))
     final = results["phases"][-1]
     rows = _metrics(path)
     start = _start_weights(recipe)
@@ -110,11 +110,16 @@ def _read_finished_run(path: Path) -> Run:
     )
 
 
-def _recipe(path: Path) -> dict[str, Any]:
-    """A run's resolved recipe, each layer's `learner.precision = "auto"` replaced by what it computed in (run.json's
-    `precision`, where recorded): runs of one recipe on machines with and without bfloat16 are different setups."""
+def _run_json(path: Path) -> dict[str, Any]:
+    """A run's run.json (empty where an older run has none)."""
+    return json.loads((path / "run.json").read_text()) if (path / "run.json").exists() else {}
+
+
+def _recipe(path: Path, info: dict[str, Any]) -> dict[str, Any]:
+    """A run's resolved recipe, each layer's `learner.precision = "auto"` replaced by what it computed in (its
+    run.json's `precision`, `info`, where recorded): runs of one recipe on machines with and without bfloat16 are
+    different setups."""
     recipe = tomllib.loads((path / "recipe.toml").read_text())
-    info = json.loads((path / "run.json").read_text()) if (path / "run.json").exists() else {}
     for layer in recipe.get("layers", []):
         learner = layer.get("learner", {})
         if learner.get("precision") == "auto" and layer.get("name") in info.get("precision", {}):
@@ -123,12 +128,12 @@ def _recipe(path: Path) -> dict[str, Any]:
 
 
 def _read_unfinished_run(path: Path) -> Run:
-    recipe = _recipe(path)
+    info = _run_json(path)
+    recipe = _recipe(path, info)
     rows = _metrics(path)
     if not rows:
         raise ValueError("metrics.csv has no evaluation yet")
     last = rows[-1]
-    info = json.loads((path / "run.json").read_text()) if (path / "run.json").exists() else {}
     final = {k: float(v) for k, v in last.items() if k not in ("phase", "learn") and v}
     final["phase"] = int(last["phase"])
     curve = _curve(rows, last["phase"])
