@@ -143,7 +143,7 @@ class TD3WithChoice(Learner):
         return self.td3.act_macs() + self.choice.macs()
 
     def computes_in(self) -> str:
-        return self.td3.precision
+        return self.td3.computes_in()
 
     def update(self) -> Losses | None:
         losses = self.td3.update()
