@@ -274,12 +274,14 @@ def _continues(ends: Sequence[_End | None]) -> _End | None:
 
 
 def _phases_until(source: Path, phase: int, ends: Sequence[_End | None]) -> tuple[dict[str, Any], ...] | None:
-    """The phases of training behind the stack of run `source` at the end of its phase `phase`: its own up to that
-    one (results.json, or the finished phases of a run still training), those behind the stack it continues (`ends`:
-    its layers' start weights) first; None where some are not known."""
+    """The phases of training behind the stack of run `source` at the end of its phase `phase` (-1: at its start):
+    its own up to that one (results.json, or the finished phases of a run still training), those behind the stack
+    it continues (`ends`: its layers' start weights) first; None where some are not known."""
     earlier = (end.behind if (end := _continues(ends)) else None) if ends else ()
+    if earlier is None or phase < 0:  # (a layer the run passed on untrained: only what came in is behind it)
+        return earlier
     file = next((f for f in (source / "results.json", source / PHASES_FILE) if f.is_file()), None)
-    if earlier is None or file is None:
+    if file is None:
         return None
     try:
         phases = tuple(p for p in json.loads(file.read_text())["phases"] if p["phase"] <= phase)
