@@ -107,6 +107,17 @@ def test_a_run_started_from_another_runs_weights_continues_that_runs_steps(tmp_p
     assert "where layer 'slow' started from, cannot be read" in err.getvalue()
 
 
+def test_behind_a_layer_a_run_passed_on_untrained_is_only_what_came_in(tmp_path):
+    from layered.summary import _phases_until
+
+    # a run with no results yet: nothing known of its phases, but at its start (-1) only its start weights count
+    assert _phases_until(tmp_path, 0, []) is None
+    assert _phases_until(tmp_path, -1, []) == ()
+    (tmp_path / "results.json").write_text(json.dumps({"phases": [{"phase": 0, "auc": 0.5}, {"phase": 1, "auc": 0.7}]}))
+    assert _phases_until(tmp_path, 0, []) == ({"phase": 0, "auc": 0.5},)
+    assert _phases_until(tmp_path, -1, []) == ()
+
+
 def test_the_curves_in_numbers_are_read_at_the_evaluations_nearest_each_fraction_of_the_last_phase():
     from layered.report import curve_points, curve_table
 
