@@ -292,16 +292,23 @@ def write_curves_csv(setups: Sequence[Any], path: Path) -> None:
 def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
     """Learning curves per environment, mean over seeds with a ±1 std band (clipped to the lowest and
     highest seed): over the last phase
-    (what the AUC measures) and, when a setup trains in several phases, over the whole run, so
+    (what the AUC measures) and, where a setup trains in several phases, over the whole run, so
     that setups can be compared at the same number of environment steps."""
     plt = pyplot()
     envs = list(dict.fromkeys(s.env for s in setups))
-    phased = any(len(r.total_curve) > len(r.curve) or r.trained_before for s in setups for r in s.runs)
-    views = [(False, "environment steps (last phase)"), (True, "environment steps (whole run)")][: 1 + phased]
+    phased = {env: any(len(r.total_curve) > len(r.curve) or r.trained_before
+                       for s in setups if s.env == env for r in s.runs) for env in envs}
+    views = [(False, "environment steps (last phase)"), (True, "environment steps (whole run)")]
+    views = views[: 1 + any(phased.values())]
     fig, axes = plt.subplots(len(views), len(envs), figsize=(5.5 * len(envs), 4 * len(views)), squeeze=False,
                              constrained_layout=True)
     for row, (whole_run, xlabel) in zip(axes, views, strict=True):
         for ax, env in zip(row, envs, strict=True):
+            if whole_run and not phased[env]:
+                ax.axis("off")
+                ax.text(0.5, 0.5, f"{env}:\nevery setup trains in one phase,\nso its whole run is the curve above",
+                        ha="center", va="center", transform=ax.transAxes, fontsize="small")
+                continue
             for s in (s for s in setups if s.env == env):
                 steps, mean, std, lowest, highest = s.curve(whole_run)
                 label = textwrap.fill(f"{s.method} ({count(len(s.runs), 'seed')})", LEGEND_WIDTH)

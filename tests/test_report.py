@@ -172,6 +172,35 @@ def test_long_setup_names_wrap_in_the_legend_within_their_plot(tmp_path, monkeyp
     assert legend.width < box.width and box.width > fig.bbox.width / 2  # the plot was not squeezed aside
 
 
+def test_the_whole_run_is_drawn_only_for_an_environment_whose_setups_train_in_phases(tmp_path, monkeypatch):
+    from matplotlib.figure import Figure
+
+    from layered.report import plot_setup_curves
+
+    drawn = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *args, **kwargs: drawn.append(fig))
+    curve = [(0, -900.0), (5000, -200.0)]
+    two_phases = replace(run("p/tla-c", 0, 0, 0, curve), total_curve=((0, -1000.0), (5000, -950.0),
+                                                                       (5000, -900.0), (10000, -200.0)),
+                         phase_starts=(5000,))
+    one_phase = [replace(run(label, 0, 0, 0, curve, env=env), total_curve=tuple(curve))
+                 for label, env in (("p/td3", "Pendulum-v1"), ("c/td3", "CartPole"))]
+    plot_setup_curves(group([two_phases, *one_phase]), tmp_path / "curves.png")
+    fig, = drawn
+    last, whole = fig.axes[:2], fig.axes[2:]
+
+    def ends(ax):  # each setup's curve, by its legend's name, at its last step
+        return {line.get_label(): line.get_xdata()[-1] for line in ax.get_lines() if not line.get_label()[0] == "_"}
+
+    column = {ax.get_title(): i for i, ax in enumerate(last)}
+    pendulum, cartpole = column["Pendulum-v1"], column["CartPole"]
+    assert ends(last[pendulum]) == {"tla-c (1 seed)": 5000, "td3 (1 seed)": 5000}
+    assert ends(whole[pendulum]) == {"tla-c (1 seed)": 10000, "td3 (1 seed)": 5000}
+    assert ends(last[cartpole]) == {"td3 (1 seed)": 5000}
+    assert not whole[cartpole].axison and not whole[cartpole].get_lines()
+    assert "every setup trains in one phase" in whole[cartpole].texts[0].get_text()
+
+
 def test_grouping_orders_methods_as_the_paper():
     runs = [run("p/tla-c", 0, 0, 0, []), run("p/td3", 0, 0, 0, []), run("p/tla-o", 1, 0, 0, []),
             run("p/tla-c", 1, 0, 0, []), run("p/temporl", 0, 0, 0, [])]
