@@ -79,7 +79,7 @@ def _seeds(text: str) -> list[int]:
         elif "-" in text.strip("-"):
             first, last = (int(part) for part in text.split("-", 1))
             if last < first:
-                raise argparse.ArgumentTypeError(f"the range {text!r} holds no seed: in A-B, A is at most B")
+                raise argparse.ArgumentTypeError(f"a range A-B needs A at most B, got {text!r}")
             seeds = list(range(first, min(last, first + MAX_GROUP) + 1))
         elif text.strip().isdigit():
             seeds = list(range(min(_positive(text), MAX_GROUP + 1)))

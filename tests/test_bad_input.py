@@ -65,7 +65,7 @@ CASES = {
     "eval zero episodes": (["eval", "{tmp}", "--episodes", "0"], "--episodes: must be positive"),
     "sweep zero seeds": (["sweep", str(TLA_C), "--seeds", "0"], "--seeds: must be positive"),
     "a descending range of seeds": (["train", str(TLA_C), "--seeds", "5-3"],
-                                    "--seeds: the range '5-3' holds no seed: in A-B, A is at most B"),
+                                    "--seeds: a range A-B needs A at most B, got '5-3'"),
     "a period written as a string": (["train", str(TLA_C), 'layers.fast.period="1"'],
                                      "layers[1].period: input should be a valid integer"),
     "a whole number written as a float": (["train", str(TLA_C), "train.steps_per_phase=3e4"],
