@@ -190,7 +190,8 @@ def test_the_whole_run_is_drawn_only_for_an_environment_whose_setups_train_in_ph
     last, whole = fig.axes[:2], fig.axes[2:]
 
     def ends(ax):  # each setup's curve, by its legend's name, at its last step
-        return {line.get_label(): line.get_xdata()[-1] for line in ax.get_lines() if not line.get_label()[0] == "_"}
+        named = (line for line in ax.get_lines() if not line.get_label().startswith("_"))
+        return {line.get_label(): line.get_xdata()[-1] for line in named}
 
     column = {ax.get_title(): i for i, ax in enumerate(last)}
     pendulum, cartpole = column["Pendulum-v1"], column["CartPole"]
