@@ -10,6 +10,7 @@ import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -136,6 +137,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="the last phase's final weights or those of its best evaluation (default: the recipe's "
                     "train.select; layers of earlier phases as they were handed on); of a run not finished, final "
                     "takes the phase under way's weights at its last checkpoint")
+    ev.add_argument("--fresh", action="store_true",
+                    help="on the fresh episodes that training evaluated each phase's final and best weights on "
+                    "(seeded train.seed + eval.fresh_seed_offset; default episodes: eval.fresh_episodes), not on "
+                    "those of its evaluations during training")
     ev.add_argument("--threads", type=_positive, help="torch threads")
     _plugin_option(ev, "besides those the run was trained with")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
@@ -330,7 +335,7 @@ def _eval(args: argparse.Namespace) -> int:
     from layered.run_evals import gallery, open_run, threshold_sweep
     from layered.stack import has_threshold
 
-    run = open_run(args.run_dir, args.weights, args.plugin, unfinished=True)
+    run = replace(open_run(args.run_dir, args.weights, args.plugin, unfinished=True), fresh=args.fresh)
     if (args.threshold is not None or args.threshold_sweep) and not has_threshold(run.recipe, run.active):
         print(f"layered: note: no layer of this stack ({', '.join(run.active)}) has a contribution that a threshold "
               "holds back, so every threshold evaluates the same", file=sys.stderr)
@@ -338,7 +343,7 @@ def _eval(args: argparse.Namespace) -> int:
         args.gallery = run.active[-1]
     if args.gallery is not None and args.gallery not in run.active:
         return _fail(f"--gallery: no layer {args.gallery!r} in this stack; layers: {', '.join(run.active)}")
-    episodes = args.episodes or run.recipe.eval.episodes
+    episodes = args.episodes or (run.recipe.eval.fresh_episodes if args.fresh else run.recipe.eval.episodes)
     if args.threshold_sweep:
         _print_sweep(threshold_sweep(run, args.threshold_sweep, episodes), run)
     if args.threshold is not None or args.plot or not (args.threshold_sweep or args.video):

@@ -20,7 +20,8 @@ def run_episode(env: LayeredEnv, learners: Mapping[str, Learner], seed: int | No
     for name in env.agent_iter():
         obs, _, terminated, truncated, _ = env.last()
         env.step(None if terminated or truncated else learners[name].act(obs, explore=False))
-    return measure_episode(env.trace, {name: learners[name].act_macs() for name in env.possible_agents})
+    macs = {name: learners[name].act_macs() for name in env.possible_agents}
+    return measure_episode(env.trace, macs, (env.stack.low, env.stack.high))
 
 
 def episode_seeds(seed: int, episodes: int) -> list[int]:

@@ -129,7 +129,7 @@ def evaluate_group(rules: Rules, envs: Envs, policy: GroupPolicy, macs: dict[str
     lanes = rows // len(seeds)
     assert lanes * len(seeds) == rows, "an evaluator holds as many rows for every seed"
     starts = [episode_seeds(seed, episodes) for seed in seeds]
-    meter = EpisodeMeter(rows, [rules.layers[i].name for i in present], macs)
+    meter = EpisodeMeter(rows, [rules.layers[i].name for i in present], macs, (rules.low, rules.high))
     measured: list[dict[int, EpisodeMeasures]] = [{} for _ in seeds]
     episode = np.arange(rows) % lanes  # the episode each row plays
     live = episode < episodes

@@ -7,6 +7,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
 
+from layered.errors import BadInput
+
 
 class CsvLog:
     """A CSV file whose columns are given up front, so no row's values are ever dropped.
@@ -30,7 +32,8 @@ class CsvLog:
         self._flush()
 
     def write(self, row: dict[str, Any]) -> None:
-        """Append one row; columns it lacks stay empty, keys outside the header are an error."""
+        """Append one row; columns it lacks stay empty, keys outside the columns given are an error (those given
+        but not in the header of a file begun by an earlier version, see `truncate`, are left out)."""
         unknown = row.keys() - self._columns
         assert not unknown, f"{self.path.name}: columns {sorted(unknown)} are not in its header"
         (self._writer or self._open("a")).writerow(row)
@@ -41,12 +44,20 @@ class CsvLog:
         return self.path.stat().st_size
 
     def truncate(self, size: int) -> None:
-        """Drop everything after the first `size` bytes (the rows written after a checkpoint)."""
+        """Drop everything after the first `size` bytes (the rows written after a checkpoint), and go on under the
+        file's own header: one begun before a column was added (by an earlier version of layered) gets its rows
+        without that column, in the places its header gives, not shifted by it."""
         self.close()
         if not self.path.exists() or self.size() < size:
             raise FileNotFoundError(f"{self.path} is shorter than the {size} bytes its checkpoint recorded")
         with self.path.open("r+b") as f:
             f.truncate(size)
+        with self.path.open(newline="") as f:
+            header = next(csv.reader(f), [])
+        unknown = [column for column in header if column not in self._columns]
+        if unknown:
+            raise BadInput(f"{self.path}: its columns {unknown} are not among those this run writes")
+        self.fields = header
 
     def close(self) -> None:
         """Close the file (a later row opens it again)."""
@@ -57,7 +68,7 @@ class CsvLog:
     def _open(self, mode: str) -> csv.DictWriter[str]:
         self.close()
         self._file = self.path.open(mode, newline="")
-        self._writer = csv.DictWriter(self._file, fieldnames=self.fields, restval="")
+        self._writer = csv.DictWriter(self._file, fieldnames=self.fields, restval="", extrasaction="ignore")
         return self._writer
 
     def _flush(self) -> None:

@@ -9,6 +9,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 
+Bounds = tuple[np.ndarray, np.ndarray]  # the environment's action space: low and high
+
+
 @dataclass(frozen=True)
 class StepRecord:
     """One base step as executed: the action, which layers decided, what each contributed, and the
@@ -42,6 +45,13 @@ def normalised_auc(steps: Sequence[float], returns: Sequence[float], return_rang
     return float(np.trapezoid(y, x) / (x[-1] - x[0]))
 
 
+def at_bounds(actions: np.ndarray, bounds: Bounds) -> np.ndarray:
+    """Whether each action (the last axis its dimensions) lies at a bound of the environment's action space in every
+    dimension: an actor held at its limits (a saturated one), whose repeats are not decisions held."""
+    low, high = bounds
+    return np.all((actions <= low) | (actions >= high), axis=-1)
+
+
 def best_evaluation(returns: Sequence[float]) -> int:
     """Index of a phase's best evaluation among its mean `returns`: the highest, the earliest on ties (the
     evaluation whose weights a run keeps as its best)."""
@@ -50,11 +60,13 @@ def best_evaluation(returns: Sequence[float]) -> int:
 
 @dataclass(frozen=True)
 class EpisodeMeasures:
-    """One episode's return, length, action repetition, jerk, decisions, compute and per-layer activity."""
+    """One episode's return, length, action repetition (all of it, and that at the action bounds), jerk, decisions,
+    compute and per-layer activity."""
 
     ret: float
     steps: int
     repetition: float
+    repetition_at_bounds: float
     jerk: float
     decisions: int  # steps at which any layer's network was evaluated
     compute: int  # multiply-accumulates of every network evaluation
@@ -63,16 +75,18 @@ class EpisodeMeasures:
     contribution: dict[str, float] = field(default_factory=dict)  # per layer: sum over steps of mean |c|
 
 
-def measure_episode(trace: Sequence[StepRecord], macs: dict[str, int]) -> EpisodeMeasures:
-    """Measures of one episode from its steps; `macs` is each layer's cost of one decision. The sums an
-    `EpisodeMeter` keeps step by step, taken over the whole episode at once, in the order it adds them."""
+def measure_episode(trace: Sequence[StepRecord], macs: dict[str, int], bounds: Bounds) -> EpisodeMeasures:
+    """Measures of one episode from its steps; `macs` is each layer's cost of one decision, `bounds` the
+    environment's action bounds. The sums an `EpisodeMeter` keeps step by step, taken over the whole episode at
+    once, in the order it adds them."""
     names, steps = list(macs), len(trace)
     actions = np.array([s.action for s in trace], np.float64).reshape(steps, -1) if trace else np.zeros((0, 0))
     decided = np.array([[n in s.decided for n in names] for s in trace], bool).reshape(steps, len(names))
     sizes = np.array([[s.size(n) for n in names] for s in trace], np.float64).reshape(steps, len(names))
+    repeats = np.all(actions[1:] == actions[:-1], axis=1)
     return _measures(
         names, ret=_in_order(np.array([s.reward for s in trace], np.float64)), steps=steps,
-        repeats=int(np.all(actions[1:] == actions[:-1], axis=1).sum()),
+        repeats=int(repeats.sum()), bound_repeats=int((repeats & at_bounds(actions[1:], bounds)).sum()),
         change=_in_order(np.abs(actions[1:] - actions[:-1]).sum(axis=1)), dims=actions.shape[1],
         decisions=int(decided.any(axis=1).sum()), compute=int((decided.astype(np.int64) @ _costs(names, macs)).sum()),
         decided=decided.sum(axis=0), acted=(sizes > 0).sum(axis=0), contribution=_in_order(sizes))
@@ -88,13 +102,15 @@ def _costs(layers: Sequence[str], macs: dict[str, int]) -> np.ndarray:
     return np.array([macs[n] for n in layers], np.int64)
 
 
-def _measures(layers: Sequence[str], ret: float, steps: int, repeats: int, change: float, dims: int, decisions: int,
-              compute: int, decided: np.ndarray, acted: np.ndarray, contribution: np.ndarray) -> EpisodeMeasures:
-    """An episode's measures from its sums: of rewards, of steps whose action repeats the previous one, of the
-    actions' absolute changes over steps and `dims` dimensions, and per layer of decisions, steps acted and
-    mean |contribution|."""
+def _measures(layers: Sequence[str], ret: float, steps: int, repeats: int, bound_repeats: int, change: float,
+              dims: int, decisions: int, compute: int, decided: np.ndarray, acted: np.ndarray,
+              contribution: np.ndarray) -> EpisodeMeasures:
+    """An episode's measures from its sums: of rewards, of steps whose action repeats the previous one (and of
+    those whose repeated action is at the action bounds), of the actions' absolute changes over steps and `dims`
+    dimensions, and per layer of decisions, steps acted and mean |contribution|."""
     return EpisodeMeasures(
         ret=float(ret), steps=steps, repetition=float(repeats / steps) if steps else 0.0,
+        repetition_at_bounds=float(bound_repeats / steps) if steps else 0.0,
         jerk=float(change / ((steps - 1) * dims)) if steps > 1 else 0.0, decisions=int(decisions), compute=int(compute),
         decided={n: int(v) for n, v in zip(layers, decided, strict=True)},
         acted={n: int(v) for n, v in zip(layers, acted, strict=True)},
@@ -105,12 +121,15 @@ class EpisodeMeter:
     """The measures of `rows` episodes under way at once (a group evaluation's rows), their sums kept step by
     step in arrays: a batch of episodes is measured without a loop over its rows."""
 
-    def __init__(self, rows: int, layers: Sequence[str], macs: dict[str, int]) -> None:
+    def __init__(self, rows: int, layers: Sequence[str], macs: dict[str, int], bounds: Bounds) -> None:
+        """`macs`: each layer's cost of one decision; `bounds`: the environment's action bounds."""
         self.layers = list(layers)
         self.macs = _costs(self.layers, macs)
+        self.bounds = bounds
         width = len(self.layers)
         self.ret, self.steps = np.zeros(rows), np.zeros(rows, np.int64)
-        self.repeats, self.change = np.zeros(rows, np.int64), np.zeros(rows)  # |a_t - a_t-1| summed over dimensions
+        self.repeats, self.bound_repeats = np.zeros(rows, np.int64), np.zeros(rows, np.int64)
+        self.change = np.zeros(rows)  # |a_t - a_t-1| summed over dimensions
         self.decisions, self.compute = np.zeros(rows, np.int64), np.zeros(rows, np.int64)
         self.decided, self.acted = np.zeros((rows, width), np.int64), np.zeros((rows, width), np.int64)
         self.contribution = np.zeros((rows, width))
@@ -125,7 +144,9 @@ class EpisodeMeter:
         if self.previous is None:
             self.previous, self.dims = np.zeros_like(action), action.shape[1]
         later = rows & (self.steps > 0)
-        self.repeats += later & np.all(action == self.previous, axis=1)
+        repeated = later & np.all(action == self.previous, axis=1)
+        self.repeats += repeated
+        self.bound_repeats += repeated & at_bounds(action, self.bounds)
         self.change += np.where(later, np.abs(action - self.previous).sum(axis=1), 0.0)
         self.previous = np.where(rows[:, None], action, self.previous)
         self.ret += np.where(rows, reward, 0.0)
@@ -139,11 +160,11 @@ class EpisodeMeter:
 
     def finish(self, row: int) -> EpisodeMeasures:
         """The measures of the episode in `row`, which starts over."""
-        measures = _measures(self.layers, self.ret[row], int(self.steps[row]), int(self.repeats[row]), self.change[row],
-                             self.dims, int(self.decisions[row]), int(self.compute[row]), self.decided[row],
-                             self.acted[row], self.contribution[row])
-        for counts in (self.ret, self.steps, self.repeats, self.change, self.decisions, self.compute, self.decided,
-                       self.acted, self.contribution):
+        measures = _measures(self.layers, self.ret[row], int(self.steps[row]), int(self.repeats[row]),
+                             int(self.bound_repeats[row]), self.change[row], self.dims, int(self.decisions[row]),
+                             int(self.compute[row]), self.decided[row], self.acted[row], self.contribution[row])
+        for counts in (self.ret, self.steps, self.repeats, self.bound_repeats, self.change, self.decisions,
+                       self.compute, self.decided, self.acted, self.contribution):
             counts[row] = 0
         return measures
 
@@ -164,6 +185,7 @@ class Evaluation:
     contribution: dict[str, float]  # mean |contribution| per step, averaged over action dimensions
     return_min: float = float("nan")  # the lowest and highest episode return
     return_max: float = float("nan")
+    repetition_at_bounds: float = float("nan")  # (NaN in the curves of checkpoints taken before it was measured)
 
     PER_LAYER: ClassVar[tuple[str, ...]] = ("decided", "acted", "contribution")
 
@@ -172,7 +194,8 @@ class Evaluation:
         out = {
             "return_mean": self.return_mean, "return_std": self.return_std, "return_min": self.return_min,
             "return_max": self.return_max, "repetition": self.repetition,
-            "jerk": self.jerk, "decisions": self.decisions, "compute": self.compute, "episode_steps": self.steps,
+            "repetition_at_bounds": self.repetition_at_bounds, "jerk": self.jerk, "decisions": self.decisions,
+            "compute": self.compute, "episode_steps": self.steps,
         }
         for measure in self.PER_LAYER:
             out |= {f"{measure}_{n}": v for n, v in getattr(self, measure).items()}
@@ -181,8 +204,8 @@ class Evaluation:
     @classmethod
     def columns(cls, layers: Sequence[str]) -> list[str]:
         """Every column `row` can give for a stack of `layers`, in its order."""
-        stack = ["return_mean", "return_std", "return_min", "return_max", "repetition", "jerk", "decisions", "compute",
-                 "episode_steps"]
+        stack = ["return_mean", "return_std", "return_min", "return_max", "repetition", "repetition_at_bounds", "jerk",
+                 "decisions", "compute", "episode_steps"]
         return stack + [f"{measure}_{n}" for measure in cls.PER_LAYER for n in layers]
 
 
@@ -195,6 +218,7 @@ def summarise(episodes: Sequence[EpisodeMeasures]) -> Evaluation:
         return_mean=float(returns.mean()),
         return_std=float(returns.std()),
         repetition=float(np.mean([e.repetition for e in episodes])),
+        repetition_at_bounds=float(np.mean([e.repetition_at_bounds for e in episodes])),
         jerk=float(np.mean([e.jerk for e in episodes])),
         decisions=float(np.mean([e.decisions for e in episodes])),
         compute=float(np.mean([e.compute for e in episodes])),

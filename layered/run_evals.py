@@ -23,7 +23,8 @@ SWEEP_FILE = "threshold-sweep.csv"
 @dataclass(frozen=True)
 class TrainedRun:
     """A run ready to evaluate: its recipe, restored learners, the layers of its stack and the weights asked for
-    (None: the recipe's `train.select`); of an unfinished run, where it stands (`layered.standing`)."""
+    (None: the recipe's `train.select`); of an unfinished run, where it stands (`layered.standing`); with `fresh`, on
+    the episodes of the run's evaluations of its final and best weights on fresh episodes."""
 
     path: Path
     recipe: Recipe
@@ -31,19 +32,23 @@ class TrainedRun:
     active: list[str]
     weights: str | None = None
     standing: Standing | None = None
+    fresh: bool = False
 
     @property
     def seed(self) -> int:
-        """The evaluation seed, as during training."""
-        return self.recipe.train.seed + self.recipe.eval.seed_offset
+        """The evaluation seed, as during training (`fresh`: as at the end of each phase, for the fresh episodes)."""
+        evaluation = self.recipe.eval
+        return self.recipe.train.seed + (evaluation.fresh_seed_offset if self.fresh else evaluation.seed_offset)
 
     @property
     def eval_dir(self) -> Path:
         """`eval/`, or `eval/weights-<w>/` for weights asked for by name, so that `layered report` reads only
-        evaluations of the weights the run hands on; an unfinished run's under `eval/unfinished/`."""
+        evaluations of the weights the run hands on; an unfinished run's under `eval/unfinished/`; those on fresh
+        episodes under a folder `fresh/` below those."""
         latest = self.weights == "final"
         folder = self.path / "eval" / (self.standing.folder(latest) if self.standing is not None else "")
         folder /= f"weights-{self.weights}" if self.weights else ""
+        folder /= "fresh" if self.fresh else ""
         folder.mkdir(parents=True, exist_ok=True)
         return folder
 

@@ -58,7 +58,31 @@ def check_both_ways(r, active, episodes, threshold=None):
     assert side_by_side.return_mean == pytest.approx(one_by_one.return_mean, rel=1e-5)
     assert side_by_side.return_std == pytest.approx(one_by_one.return_std, rel=1e-4, abs=1e-4)
     assert side_by_side.repetition == one_by_one.repetition and side_by_side.decided == one_by_one.decided
+    assert side_by_side.repetition_at_bounds == one_by_one.repetition_at_bounds
     assert side_by_side.steps == one_by_one.steps and side_by_side.acted == one_by_one.acted
     assert side_by_side.compute == one_by_one.compute and side_by_side.decisions == one_by_one.decisions
     assert side_by_side.contribution == pytest.approx(one_by_one.contribution, rel=1e-5)
     assert side_by_side.jerk == pytest.approx(one_by_one.jerk, rel=1e-5)
+
+
+@pytest.mark.parametrize("bias, at_bounds", [(20.0, 199 / 200), (-20.0, 199 / 200), (0.0, 0.0)])
+def test_an_actor_held_at_its_limit_repeats_at_the_action_bounds_and_a_constant_inside_does_not(bias, at_bounds):
+    import torch
+
+    r = load_recipe(ROOT / "recipes/pendulum/td3.toml", SMALL)
+    learners = build_learners(r)
+    with torch.no_grad():  # the actor's output is tanh(bias) whatever it sees: +-1 (torque +-2, the bounds) or 0
+        out = learners["fast"].actor.net[-1]
+        out.weight.zero_()
+        out.bias.fill_(bias)
+    env = make_aec_env(r, evaluation=True, keep_trace=True)
+    one_by_one = evaluate(env, learners, 2, 11)
+    env.close()
+    evaluator = open_run_evaluator(r, ["fast"], 2)
+    try:
+        side_by_side = evaluate_run(evaluator, learners, 2, 11)
+    finally:
+        evaluator[2].close()
+    for measured in (one_by_one, side_by_side):  # Pendulum-v1's 200 steps, each after the first a repeat
+        assert (measured.steps, measured.repetition) == (200, 199 / 200)
+        assert measured.repetition_at_bounds == at_bounds

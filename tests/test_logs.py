@@ -40,3 +40,29 @@ def test_a_log_reopened_after_close_appends(tmp_path):
     again.write({"step": 2})
     again.close()
     assert (tmp_path / "m.csv").read_bytes() == b"step\r\n1\r\n2\r\n"
+
+
+def test_a_file_begun_under_fewer_columns_goes_on_under_its_own_header(tmp_path):
+    path = tmp_path / "metrics.csv"
+    old = CsvLog(path, ["step", "return"])  # as an earlier version wrote it, before a measure was added
+    old.start()
+    old.write({"step": 1, "return": 2.0})
+    mark = old.size()
+    old.write({"step": 2, "return": 3.0})  # after its last checkpoint
+    old.close()
+    resumed = CsvLog(path, ["step", "return", "at_bounds"])
+    resumed.truncate(mark)
+    resumed.write({"step": 2, "return": 4.0, "at_bounds": 0.5})  # the new column left out, nothing shifted
+    with pytest.raises(AssertionError, match=r"columns \['loss'\]"):
+        resumed.write({"step": 3, "loss": 0.5})
+    resumed.close()
+    assert path.read_bytes() == b"step,return\r\n1,2.0\r\n2,4.0\r\n"
+
+
+def test_a_file_with_a_column_this_run_does_not_write_is_refused_in_one_line(tmp_path):
+    from layered.errors import BadInput
+
+    path = tmp_path / "metrics.csv"
+    path.write_bytes(b"step,gone\r\n1,2\r\n")
+    with pytest.raises(BadInput, match=r"columns \['gone'\] are not among those this run writes"):
+        CsvLog(path, ["step", "return"]).truncate(len(b"step,gone\r\n1,2\r\n"))

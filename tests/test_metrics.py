@@ -7,6 +7,7 @@ from layered.metrics import (
     Evaluation,
     EpisodeMeter,
     StepRecord,
+    at_bounds,
     best_evaluation,
     measure_episode,
     normalised_auc,
@@ -18,9 +19,13 @@ def a(*xs):
     return np.array(xs, np.float32)
 
 
-def played(actions):
-    """The measures of an episode of these executed actions (no layer named, rewards 0)."""
-    return measure_episode([StepRecord(action, 0.0, (), {}) for action in actions], {})
+UNBOUNDED = (a(-np.inf), a(np.inf))  # no action is at these bounds
+
+
+def played(actions, bounds=UNBOUNDED):
+    """The measures of an episode of these executed actions (no layer named, rewards 0) in an action space of
+    these `bounds`."""
+    return measure_episode([StepRecord(action, 0.0, (), {}) for action in actions], {}, bounds)
 
 
 def test_action_repetition_counts_exact_repeats_over_all_steps():
@@ -28,6 +33,23 @@ def test_action_repetition_counts_exact_repeats_over_all_steps():
     assert played(actions).repetition == pytest.approx(3 / 5)
     assert played([a(1.0, 2.0), a(1.0, 2.0001)]).repetition == 0.0
     assert played([]).repetition == 0.0
+
+
+def test_repetition_at_the_bounds_counts_the_repeats_whose_action_is_at_a_bound_in_every_dimension():
+    # in [-1, 1]: steps 2 and 3 repeat +1 and step 7 repeats -1 (at the bounds); step 5 repeats 0.5 (held)
+    actions = [a(1.0), a(1.0), a(1.0), a(0.5), a(0.5), a(-1.0), a(-1.0)]
+    m = played(actions, (a(-1.0), a(1.0)))
+    assert (m.repetition, m.repetition_at_bounds) == (pytest.approx(4 / 7), pytest.approx(3 / 7))
+    assert played(actions).repetition_at_bounds == 0.0, "no bound reached"
+    # two dimensions with bounds of their own, (-2, 2) and (-1, 1): a repeat counts only with both at a bound
+    bounds = (a(-2.0, -1.0), a(2.0, 1.0))
+    assert at_bounds(np.array([[2.0, -1.0], [2.0, 0.3], [1.0, 1.0], [-2.0, 1.0]]), bounds).tolist() == [
+        True, False, False, True]
+    m = played([a(2.0, -1.0), a(2.0, -1.0), a(2.0, 0.3), a(2.0, 0.3), a(-2.0, 1.0)], bounds)
+    assert (m.repetition, m.repetition_at_bounds) == (pytest.approx(2 / 5), pytest.approx(1 / 5))
+    # a first step at a bound repeats nothing; an action past a bound (not clipped) counts as at it
+    assert played([a(1.0)], (a(-1.0), a(1.0))).repetition_at_bounds == 0.0
+    assert played([a(1.5), a(1.5)], (a(-1.0), a(1.0))).repetition_at_bounds == 0.5
 
 
 def test_normalised_auc_is_the_trapezoid_over_range_and_span():
@@ -61,8 +83,8 @@ def test_measure_episode_counts_decisions_compute_and_activity():
         [a(1.0), a(1.0), a(0.2), a(0.2)], [-1.0, -2.0, -0.5, 0.0],
         [("slow", "fast"), ("fast",), (), ("fast",)], [("slow",), ("slow",), ("slow", "fast"), ("slow",)],
     )
-    m = measure_episode(trace, {"slow": 10, "fast": 3})
-    assert (m.ret, m.steps, m.repetition, m.decisions) == (-3.5, 4, 0.5, 3)
+    m = measure_episode(trace, {"slow": 10, "fast": 3}, (a(-1.0), a(1.0)))
+    assert (m.ret, m.steps, m.repetition, m.repetition_at_bounds, m.decisions) == (-3.5, 4, 0.5, 0.25, 3)
     assert m.jerk == pytest.approx(0.8 / 3)
     assert m.compute == 10 + 3 * 3
     assert m.decided == {"slow": 1, "fast": 3}
@@ -72,7 +94,7 @@ def test_measure_episode_counts_decisions_compute_and_activity():
 
 def test_a_meter_of_several_rows_measures_each_rows_episode_as_its_own_trace_would():
     macs = {"slow": 10, "fast": 3}
-    meter = EpisodeMeter(2, list(macs), macs)
+    meter = EpisodeMeter(2, list(macs), macs, (a(-1.0), a(10.0)))
     # row 0 plays the episode of the test above; row 1 steps at its 2nd and 4th steps only, then again after
     # its episode is finished (a new one, measured from nothing)
     rows = [np.array([True, False]), np.array([True, True]), np.array([True, False]), np.array([True, True])]
@@ -84,6 +106,7 @@ def test_a_meter_of_several_rows_measures_each_rows_episode_as_its_own_trace_wou
                      np.array([decided[t], [0, 1]], bool), np.array([sizes[t], [0.0, 0.25]]))
     row0, row1 = meter.finish(0), meter.finish(1)
     assert (row0.ret, row0.steps, row0.repetition, row0.decisions, row0.compute) == (-3.5, 4, 0.5, 3, 19)
+    assert row0.repetition_at_bounds == 0.0, "its repeats, of 1.0 and 0.2, are inside (-1, 10)"
     assert row0.jerk == pytest.approx(0.8 / 3)
     assert row0.decided == {"slow": 1, "fast": 3} and row0.acted == {"slow": 4, "fast": 1}
     assert row0.contribution == {"slow": 2.0, "fast": 0.5}
@@ -95,16 +118,22 @@ def test_a_meter_of_several_rows_measures_each_rows_episode_as_its_own_trace_wou
                  np.zeros((2, 2)))
     again = meter.finish(1)
     assert (again.ret, again.steps, again.repetition, again.jerk) == (1.0, 1, 0.0, 0.0), "a new episode's first step"
+    for _ in range(2):
+        meter.record(np.array([False, True]), np.array([[0.0], [10.0]]), np.array([0.0, 1.0]),
+                     np.zeros((2, 2), bool), np.zeros((2, 2)))
+    assert meter.finish(1).repetition_at_bounds == 0.5, "10 repeated, at the upper bound: one of two steps"
 
 
 def test_a_meters_rows_measure_bit_for_bit_what_measure_episode_measures_of_their_traces():
     rng, macs = np.random.default_rng(0), {"slow": 10, "fast": 3}
     traces = [[], [], []]
-    meter = EpisodeMeter(3, list(macs), macs)
+    bounds = (a(-3.0, -3.0), a(0.5, 0.5))
+    meter = EpisodeMeter(3, list(macs), macs, bounds)
     for _ in range(60):
         rows = rng.random(3) < 0.7
         action = rng.normal(size=(3, 2)).astype(np.float32)
-        action[rng.random(3) < 0.3] = 0.5  # some steps repeat
+        action[rng.random(3) < 0.3] = 0.5  # some steps repeat, at the bounds
+        action[rng.random(3) < 0.2] = (0.5, 0.0)  # and some not
         reward, decided = rng.normal(size=3), rng.random((3, 2)) < 0.4
         sizes = np.where(rng.random((3, 2)) < 0.5, np.abs(rng.normal(size=(3, 2))), 0.0)
         meter.record(rows, action, reward, decided, sizes)
@@ -113,15 +142,16 @@ def test_a_meters_rows_measure_bit_for_bit_what_measure_episode_measures_of_thei
             traces[k].append(StepRecord(action[k], float(reward[k]), tuple(n for j, n in enumerate(macs)
                                                                              if decided[k, j]), contributions))
     for k in range(3):
-        assert meter.finish(k) == measure_episode(traces[k], macs), f"row {k}"
+        assert meter.finish(k) == measure_episode(traces[k], macs, bounds), f"row {k}"
 
 
 def test_summarise_means_returns_and_pools_activity_over_steps():
-    e1 = measure_episode(steps([a(0.0)] * 2, [-1.0, -1.0], [("x",), ()], [("x",), ("x",)]), {"x": 7})
-    e2 = measure_episode(steps([a(0.0)] * 4, [0.0] * 4, [("x",)] * 4, [()] * 4), {"x": 7})
+    e1 = measure_episode(steps([a(0.0)] * 2, [-1.0, -1.0], [("x",), ()], [("x",), ("x",)]), {"x": 7}, (a(0.0), a(1.0)))
+    e2 = measure_episode(steps([a(0.0)] * 4, [0.0] * 4, [("x",)] * 4, [()] * 4), {"x": 7}, (a(-1.0), a(1.0)))
     s = summarise([e1, e2])
     assert s.return_mean == pytest.approx(-1.0) and s.return_std == pytest.approx(1.0)
     assert s.decisions == pytest.approx(2.5) and s.repetition == pytest.approx((0.5 + 0.75) / 2)
+    assert s.repetition_at_bounds == pytest.approx((0.5 + 0.0) / 2), "e1 repeats 0 at its lower bound, e2 inside"
     assert s.compute == pytest.approx((7 + 28) / 2) and s.jerk == 0.0
     assert s.decided == {"x": pytest.approx(5 / 6)} and s.acted == {"x": pytest.approx(2 / 6)}
     assert s.contribution == {"x": pytest.approx(2 * 0.5 / 6)}
@@ -151,12 +181,28 @@ def test_normalised_auc_of_two_points_and_of_a_curve_starting_late():
 
 
 def test_summarise_of_one_episode_is_that_episode():
-    e = measure_episode(steps([a(0.0), a(1.0)], [-1.0, -3.0], [("x",), ()], [("x",), ()]), {"x": 2})
+    e = measure_episode(steps([a(0.0), a(1.0)], [-1.0, -3.0], [("x",), ()], [("x",), ()]), {"x": 2}, UNBOUNDED)
     s = summarise([e])
     assert (s.return_mean, s.return_std, s.return_min, s.return_max, s.steps) == (-4.0, 0.0, -4.0, -4.0, 2.0)
     assert s.decided == {"x": 0.5}
     row = s.row()
     assert list(row) == Evaluation.columns(["x"])
     assert row == {"return_mean": -4.0, "return_std": 0.0, "return_min": -4.0, "return_max": -4.0,
-                   "repetition": 0.0, "jerk": 1.0, "decisions": 1.0, "compute": 2.0, "episode_steps": 2.0,
+                   "repetition": 0.0, "repetition_at_bounds": 0.0,
+                   "jerk": 1.0, "decisions": 1.0, "compute": 2.0, "episode_steps": 2.0,
                    "decided_x": 0.5, "acted_x": 0.5, "contribution_x": 0.25}
+
+
+def test_a_loop_state_saved_before_the_repetition_at_the_bounds_was_measured_loads_with_it_unknown():
+    import json
+
+    from layered.runstate import LoopState
+
+    state = LoopState()
+    state.curve.append((100, Evaluation(-150.0, 5.0, 0.5, 0.25, 200.0, 2e6, 200.0, {}, {}, {}, -160.0, -140.0, 0.125)))
+    data = json.loads(state.to_json())
+    assert data["curve"][0][1]["repetition_at_bounds"] == 0.125
+    del data["curve"][0][1]["repetition_at_bounds"]  # as a checkpoint of an earlier version holds its curve
+    step, evaluation = LoopState.from_json(json.dumps(data)).curve[0]
+    assert (step, evaluation.return_mean, evaluation.repetition) == (100, -150.0, 0.5)
+    assert np.isnan(evaluation.repetition_at_bounds)

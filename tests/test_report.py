@@ -415,10 +415,10 @@ def test_the_per_seed_table_shows_each_seed_and_its_earlier_phases(tmp_path):
     setups = group([two_phases(0, 900.0, 300.0, 400.0), two_phases(1, 500.0, 700.0, 1000.0)])
     text = write_report(setups, tmp_path)
     table = text.split("### Hopper-v5, hopper/tla-realtime")[1].split("##")[0]
-    assert ("| seed | phase 0 (slow): best | return | AUC | AUC, whole run | final | best | best step | best AR |"
-            in table)
-    assert "| 0 | 900.0 | 301.0 | 0.250 | 0.100 | 300.0 | 400.0 | 0 | 50.0% |" in table
-    assert "| 1 | 500.0 | 701.0 | 0.500 | 0.200 | 700.0 | 1000.0 | 5000 | 50.0% |" in table
+    assert ("| seed | phase 0 (slow): best | return | AUC | AUC, whole run | final | best | best step | best AR "
+            "| best AR at bounds |" in table)
+    assert "| 0 | 900.0 | 301.0 | 0.250 | 0.100 | 300.0 | 400.0 | 0 | 50.0% | n/a |" in table  # (not measured)
+    assert "| 1 | 500.0 | 701.0 | 0.500 | 0.200 | 700.0 | 1000.0 | 5000 | 50.0% | n/a |" in table
     assert ("| mean ± std | 700.0 ± 200.0 | 501.0 ± 200.0 | 0.375 ± 0.125 | 0.150 ± 0.050 | 500.0 ± 200.0 "
             "| 700.0 ± 300.0 | 2500 ± 2500 | 50.0% ± 0.0% |") in table
     # a setup of one phase: its AUC once
@@ -437,3 +437,25 @@ def test_step_axes_read_as_thousands_and_millions():
     assert [fmt(v) for v in (0, 500, 125_000, 1_000_000)] == ["0", "500", "125k", "1M"]
     assert ax.get_xlabel() == "environment steps"
     plt.close(fig)
+
+
+def test_the_repetition_at_the_bounds_shows_beside_the_repetition_and_as_n_a_in_results_written_before_it(tmp_path):
+    from layered.report import results_table, write_report
+
+    row = {"phase": 0, "learn": ["fast"], "active": ["fast"], "return_mean": -150.0, "return_std": 5.0, "auc": 0.9,
+           "repetition": 0.5, "repetition_at_bounds": 0.125, "jerk": 0.25, "decisions": 200.0, "episode_steps": 200.0,
+           "compute": 2e6}
+    fresh = {"fresh_final_return_mean": -160.0, "fresh_final_return_std": 1.0, "fresh_final_repetition": 0.75,
+             "fresh_final_repetition_at_bounds": 0.5, "best_step": 100, "best_return_mean": -140.0,
+             "fresh_best_return_mean": -150.0, "fresh_best_return_std": 2.0, "fresh_best_repetition": 0.25,
+             "fresh_best_repetition_at_bounds": 0.0}
+    old = {k: v for k, v in (row | fresh).items() if "at_bounds" not in k}  # a results.json of an earlier version
+    table = results_table([row | fresh, old]).splitlines()
+    assert "| 0.900 | 50.0% | 12.5% | 0.250 |" in table[2] and "| 0.900 | 50.0% | n/a | 0.250 |" in table[3]
+    assert "| -160.0 ± 1.0 | 75.0% | 50.0% | 100 | -140.0 | -150.0 ± 2.0 | 25.0% | 0.0% |" in table[-2]
+    assert "| -160.0 ± 1.0 | 75.0% | n/a | 100 | -140.0 | -150.0 ± 2.0 | 25.0% | n/a |" in table[-1]
+    del row["learn"], row["active"]  # (as a report reads a run's results)
+    runs = [Run(Path(f"/r/td3-{seed}"), "Pendulum-v1", "pendulum/td3", seed, False, final, ((0, -150.0),))
+            for seed, final in enumerate([{**row, **fresh, "repetition_at_bounds": at} for at in (0.125, 0.375)])]
+    text = write_report(group(runs), tmp_path)
+    assert "| Pendulum-v1 | 50.0% ± 0.0% | 25.0% ± 12.5% | 200.0 ± 0.0 |" in text.split("## Table 2")[1]

@@ -34,6 +34,7 @@ def check_run(out: Path, phases: int, layers: list[str]) -> dict:
     for key in ("return_mean", "return_std", "auc", "repetition", "decisions", "episode_steps"):
         assert final[key] is not None
     assert 0 <= final["repetition"] <= 1 and 0 < final["decisions"] <= final["episode_steps"]
+    assert 0 <= final["repetition_at_bounds"] <= final["repetition"]
     assert {f"decided_{n}" for n in final["active"]} <= set(final)
     for name in layers:
         assert (out / "checkpoints" / f"{name}.pt").exists()
@@ -118,6 +119,13 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
     last = list(csv.DictReader((out / "metrics.csv").open()))[-1]
     assert [float(last[k]) for k in ("return_mean", "return_std", "jerk")] == [again[k] for k in
                                                                                 ("return_mean", "return_std", "jerk")]
+    proc = layered_cli("eval", out, "--weights", "final", "--fresh")  # the end of training's fresh episodes again
+    assert proc.returncode == 0, proc.stderr
+    fresh = json.loads((out / "eval" / "weights-final" / "fresh" / "threshold-recipe-episodes-2.json").read_text())
+    ended = json.loads((out / "results.json").read_text())["phases"][-1]
+    measures = ("return_mean", "return_std", "repetition", "repetition_at_bounds", "decisions", "jerk")
+    assert [fresh[k] for k in measures] == [ended[f"fresh_final_{k}"] for k in measures]
+    assert fresh["return_mean"] != again["return_mean"], "other episodes than those of training's evaluations"
     proc = layered_cli("eval", out, "--episodes", 2, "--threshold", 0.0, "--plot")
     assert proc.returncode == 0, proc.stderr
     written = json.loads((out / "eval" / "threshold-0.0-episodes-2.json").read_text())
@@ -181,7 +189,7 @@ def test_each_phase_keeps_final_and_best_weights_reports_both_fresh_and_hands_on
         curve = [(int(m["step"]), float(m["return_mean"])) for m in metrics if m["phase"] == str(row["phase"])]
         best = max(curve, key=lambda point: point[1])
         assert (row["best_step"], row["best_return_mean"]) == best  # the earliest best evaluation of the phase
-        measures = ("return_mean", "return_std", "repetition", "decisions")
+        measures = ("return_mean", "return_std", "repetition", "repetition_at_bounds", "decisions")
         assert {f"fresh_{weights}_{k}" for weights in ("final", "best") for k in measures} <= set(row)
     assert "Final and best weights of each phase" in (tmp_path / "results.md").read_text()
     slow = {name: load_checkpoint(tmp_path / "checkpoints" / name, "slow")["actor"]
