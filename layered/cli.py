@@ -427,7 +427,7 @@ def _export(args: argparse.Namespace) -> int:
     torch.set_num_threads(1)  # decisions are timed on one core, as on a robot's controller
     export_stack(recipe, learners, active, out, args.format, args.threshold)
     print(f"exported {', '.join(active)} ({args.format}) to {out}")
-    result = compare(recipe, learners, active, out, args.episodes, recipe.train.seed + recipe.eval.seed_offset,
+    result = compare(recipe, learners, active, out, args.episodes, run.seed,
                      args.threshold)
     (out / "check.json").write_text(json.dumps(result.row(), indent=2) + "\n")
     verdict = "the same executed actions" if result.matches else "DIFFERENT executed actions"

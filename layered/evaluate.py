@@ -24,6 +24,13 @@ def run_episode(env: LayeredEnv, learners: Mapping[str, Learner], seed: int | No
     return measure_episode(env.trace, macs, (env.stack.low, env.stack.high))
 
 
+def evaluation_seed(recipe: Recipe, fresh: bool = False) -> int:
+    """The seed a run's evaluations draw their episodes from (`episode_seeds`): `train.seed + eval.seed_offset`, or
+    with `fresh` that of the fresh episodes each phase's final and best weights are measured on at its end."""
+    evaluation = recipe.eval
+    return recipe.train.seed + (evaluation.fresh_seed_offset if fresh else evaluation.seed_offset)
+
+
 def episode_seeds(seed: int, episodes: int) -> list[int]:
     """The seeds of an evaluation's episodes, drawn from `seed`: each episode starts where it would whatever was
     played before it (so that episodes can be played side by side, as a group does), and the episodes of

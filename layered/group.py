@@ -36,6 +36,7 @@ from layered.env_group import Envs
 from layered.envs import make_env, snapshot_env
 from layered.errors import Diverged
 from layered.events import EventLog
+from layered.evaluate import evaluation_seed
 from layered.group_eval import Stacks, all_rows, close_evaluator, eval_lanes, evaluate_stacks, open_stacks
 from layered.group_state import (
     GROUP_CHECKPOINT,
@@ -523,7 +524,7 @@ class Group:
     def _evaluate(self, phase: Phase, evaluator: Stacks, losses: dict[str, PendingLosses],
                   step: int, bar: Progress) -> None:
         """Evaluate every seed's present layers now and log its row, with its mean losses since the last."""
-        results = self._evaluations(phase, evaluator, self.recipe.eval.episodes, self.recipe.eval.seed_offset)
+        results = self._evaluations(phase, evaluator, self.recipe.eval.episodes)
         _read_back(losses, self.seeds, step)
         learned = any(any(seed.state.losses.values()) for seed in self.seeds)
         for k, (seed, result) in enumerate(zip(self.seeds, results, strict=True)):
@@ -540,11 +541,11 @@ class Group:
         returns = np.array([r.return_mean for r in results])
         bar.evaluated(step, float(returns.mean()), float(returns.std()), learned)
 
-    def _evaluations(self, phase: Phase, evaluator: Stacks, episodes: int, offset: int) -> list[Evaluation]:
-        """Each seed's evaluation of its present layers over `episodes` episodes seeded from its seed + `offset`, as
-        many side by side as the evaluator has lanes."""
+    def _evaluations(self, phase: Phase, evaluator: Stacks, episodes: int, fresh: bool = False) -> list[Evaluation]:
+        """Each seed's evaluation of its present layers over `episodes` episodes seeded from its `evaluation_seed`
+        (`fresh`: its fresh episodes'), as many side by side as the evaluator has lanes."""
         return evaluate_stacks(evaluator, self.learners, lambda learner, obs: learner.greedy(obs), episodes,
-                               [seed.recipe.train.seed + offset for seed in self.seeds])
+                               [evaluation_seed(seed.recipe, fresh) for seed in self.seeds])
 
     def _finish_phase(self, phase: Phase, results: list[PhaseResult]) -> list[dict[str, Any]]:
         """Each seed's phase end as the single loop's: its final and best weights saved, both evaluated on
@@ -580,8 +581,7 @@ class Group:
         without an evaluator: `eval.fresh_episodes` is 0)."""
         if evaluator is None:
             return
-        evaluation = self.recipe.eval
-        results = self._evaluations(phase, evaluator, evaluation.fresh_episodes, evaluation.fresh_seed_offset)
+        results = self._evaluations(phase, evaluator, self.recipe.eval.fresh_episodes, fresh=True)
         for row, result in zip(rows, results, strict=True):
             row |= {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from layered.evaluate import evaluation_seed
 from layered.learners import Learner
 from layered.plugins import load_plugins
 from layered.recipe import Recipe, load_recipe
@@ -37,8 +38,7 @@ class TrainedRun:
     @property
     def seed(self) -> int:
         """The evaluation seed, as during training (`fresh`: as at the end of each phase, for the fresh episodes)."""
-        evaluation = self.recipe.eval
-        return self.recipe.train.seed + (evaluation.fresh_seed_offset if self.fresh else evaluation.seed_offset)
+        return evaluation_seed(self.recipe, self.fresh)
 
     @property
     def eval_dir(self) -> Path:

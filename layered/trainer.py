@@ -17,6 +17,7 @@ import numpy as np
 
 from layered.agents import LayeredEnv, make_aec_env
 from layered.checkpoint import save_checkpoint
+from layered.evaluate import evaluation_seed
 from layered.group_eval import Stacks, close_evaluator, evaluate_run, open_run_evaluator
 from layered.interrupt import StopRequest, Stopped
 from layered.learners import Learner
@@ -128,8 +129,7 @@ def _fresh_evaluation(run: Training, evaluator: Stacks | None, label: str) -> di
     if evaluator is None:
         return {}
     recipe = run.recipe
-    seed = recipe.train.seed + recipe.eval.fresh_seed_offset
-    result = evaluate_run(evaluator, run.learners, recipe.eval.fresh_episodes, seed)
+    result = evaluate_run(evaluator, run.learners, recipe.eval.fresh_episodes, evaluation_seed(recipe, fresh=True))
     return {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
 
 
@@ -232,7 +232,7 @@ def _evaluate(run: Training, state: LoopState, phase: Phase, evaluator: Stacks, 
     """Evaluate the present layers now and log the row, with each learning layer's mean losses since the last."""
     recipe = run.recipe
     _read_back_losses(state, run.learners)
-    result = evaluate_run(evaluator, run.learners, recipe.eval.episodes, recipe.train.seed + recipe.eval.seed_offset)
+    result = evaluate_run(evaluator, run.learners, recipe.eval.episodes, evaluation_seed(recipe))
     state.curve.append((state.step, result))
     if state.best_index() == len(state.curve) - 1:
         state.best = {name: copy.deepcopy(run.learners[name].state_dict()) for name in phase.learn}
