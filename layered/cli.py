@@ -7,6 +7,7 @@ import json
 import math
 import os
 import signal
+import statistics
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -128,9 +129,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="continue with a changed setting (a layer's learner settings, action_penalty, updates), "
                     "e.g. --set layers.fast.learner.lr=1e-4 after a divergence; in every seed of a group; recorded "
                     "in run.json")
-    ev = sub.add_parser("eval", help="evaluate a trained run directory")
+    ev = sub.add_parser("eval", help="evaluate a trained run directory, or every seed of a group")
     ev.add_argument("run_dir", type=Path, help="run directory of a trained run (of one still training or stopped: "
-                    "the phase under way at its best weights so far)")
+                    "the phase under way at its best weights so far), or a group's directory: every seed evaluated "
+                    "as the group evaluates them, their learners stacked")
     ev.add_argument("--episodes", type=_positive, help="episodes (default: the recipe's eval.episodes)")
     ev.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
     ev.add_argument("--weights", choices=["final", "best"],
@@ -332,9 +334,12 @@ def _finished(out: Path) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    from layered.group_state import group_dir
     from layered.run_evals import gallery, open_run, threshold_sweep
     from layered.stack import has_threshold
 
+    if group_dir(args.run_dir) == args.run_dir:
+        return _eval_group(args)
     run = replace(open_run(args.run_dir, args.weights, args.plugin, unfinished=True), fresh=args.fresh)
     if (args.threshold is not None or args.threshold_sweep) and not has_threshold(run.recipe, run.active):
         print(f"layered: note: no layer of this stack ({', '.join(run.active)}) has a contribution that a threshold "
@@ -364,6 +369,40 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _eval_group(args: argparse.Namespace) -> int:
+    """Every seed of the group in `args.run_dir` evaluated as the group evaluates them (`evaluate_group_runs`), each
+    seed's row written to its own eval folder."""
+    from layered.run_evals import evaluate_group_runs, open_group
+
+    one_run = [flag for flag, given in (("--plot", args.plot), ("--threshold-sweep", args.threshold_sweep),
+                                        ("--video", args.video), ("--gallery", args.gallery is not None)) if given]
+    if one_run:
+        return _fail(f"{', '.join(one_run)}: of one run; {args.run_dir} is a group: name one of its seeds "
+                     f"({args.run_dir / 'seed<k>'})")
+    runs = open_group(args.run_dir, args.weights, args.plugin, args.fresh)
+    episodes = args.episodes or (runs[0].recipe.eval.fresh_episodes if args.fresh else runs[0].recipe.eval.episodes)
+    results = evaluate_group_runs(runs, episodes, args.threshold, progress=True)
+    written = [_write_evaluation(args, run, episodes, result, "-group") for run, result in zip(runs, results,
+                                                                                              strict=True)]
+    print(results_table([{**row, "phase": run.path.name} for run, (row, _) in zip(runs, written, strict=True)]))
+    returns = [result.return_mean for result in results]
+    print(f"over the {len(runs)} seeds: return {statistics.fmean(returns):.1f} ± {statistics.pstdev(returns):.1f}")
+    print(f"written to {written[0][1]}, and to the same name in each seed's run directory")
+    return 0
+
+
+def _write_evaluation(args: argparse.Namespace, run: Any, episodes: int, result: Any,
+                      suffix: str = "") -> tuple[dict[str, Any], Path]:
+    """The run's evaluation `result` as a results row, written to its eval folder (`suffix`: after the file's name);
+    the row and its file."""
+    threshold = args.threshold if args.threshold is not None else "recipe"
+    row = {"phase": "eval", "learn": [], "active": run.active, "auc": None, "threshold": threshold,
+           "episodes": episodes, **result.row()}
+    out = run.eval_dir / f"threshold-{threshold}-episodes-{episodes}{suffix}.json"
+    out.write_text(json.dumps(row, indent=2))
+    return row, out
+
+
 def _evaluate_once(args: argparse.Namespace, run: Any, episodes: int) -> None:
     """The run's evaluation over `episodes` episodes, played side by side as its training's evaluations are;
     with --plot, the last of them played again through the agent view, for its trace."""
@@ -374,11 +413,7 @@ def _evaluate_once(args: argparse.Namespace, run: Any, episodes: int) -> None:
         result = evaluate_run(evaluator, run.learners, episodes, run.seed, progress=True)
     finally:
         close_evaluator(evaluator)
-    threshold = args.threshold if args.threshold is not None else "recipe"
-    row = {"phase": "eval", "learn": [], "active": run.active, "auc": None, "threshold": threshold,
-           "episodes": episodes, **result.row()}
-    out = run.eval_dir / f"threshold-{threshold}-episodes-{episodes}.json"
-    out.write_text(json.dumps(row, indent=2))
+    row, out = _write_evaluation(args, run, episodes, result)
     print(results_table([row]))
     print(f"written to {out}")
     if args.plot:

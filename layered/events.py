@@ -13,6 +13,7 @@ EVAL_TAGS = {
     "return_mean": "eval/return", "return_std": "eval/return_std", "return_min": "eval/return_min",
     "return_max": "eval/return_max", "repetition": "eval/action_repetition",
     "repetition_at_bounds": "eval/action_repetition_at_bounds",
+    "repetition_held": "eval/action_repetition_held",
     "jerk": "eval/jerk", "decisions": "eval/decisions", "compute": "eval/compute_macs",
     "episode_steps": "eval/episode_steps",
 }

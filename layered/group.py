@@ -37,7 +37,7 @@ from layered.envs import make_env, snapshot_env
 from layered.errors import Diverged
 from layered.events import EventLog
 from layered.evaluate import evaluation_seed
-from layered.group_eval import Stacks, all_rows, close_evaluator, eval_lanes, evaluate_stacks, open_stacks
+from layered.group_eval import Stacks, all_rows, close_evaluator, evaluate_stacks, open_group_evaluator, open_stacks
 from layered.group_state import (
     GROUP_CHECKPOINT,
     GroupCheckpoint,
@@ -194,7 +194,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
                  for k, (recipe, out, learners) in enumerate(zip(recipes, outs, singles, strict=True))]
         stop = StopRequest(until="this step")
         writer = CheckpointWriter(beside=writes_beside(next(iter(singles[0].values())).device))
-        group = Group(seeds, _stack_learners(recipes, singles), max_steps, progress, directory, digests, stop,
+        group = Group(seeds, stack_learners(recipes, singles), max_steps, progress, directory, digests, stop,
                       ReplayJournal(replay_folder(directory / GROUP_CHECKPOINT)),
                       BestJournal(best_folder(directory / GROUP_CHECKPOINT)), writer)
         del singles
@@ -276,13 +276,13 @@ def seed_weights(recipe: Recipe, states: Mapping[str, dict[str, Any]], row: int,
     """Seed row `row`'s weights (single learners' `state_dict`s) in layers' learner states `states` of a group of
     `rows` seeds of `recipe`, as its checkpoint holds them (what `resume_state` returned)."""
     singles = build_learners(recipe, device="cpu")
-    groups = _stack_learners([recipe] * rows, [singles] * rows)  # (the seeds' own starting weights do not matter)
+    groups = stack_learners([recipe] * rows, [singles] * rows)  # (the seeds' own starting weights do not matter)
     for name, state in states.items():
         groups[name].load_resume_state(state)
     return {name: groups[name].seed_state_dict(row) for name in states}
 
 
-def _stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]) -> dict[str, GroupLearner]:
+def stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]) -> dict[str, GroupLearner]:
     """Each layer's learners of every seed as one group, its generators seeded by the layer and the seeds."""
     seeds = [recipe.train.seed for recipe in recipes]
     return {name: STACKED[recipes[0].learner_config(i).kind]([learners[name] for learners in singles],
@@ -334,20 +334,19 @@ class Group:
                 seed.state.finish_phase(row)
                 write_finished_phases(seed.state.rows, seed.out)
 
-    def _stacks(self, phase: Phase, evaluation: bool, lanes: int = 1) -> Stacks:
-        """The phase's stacks (`open_stacks`) over `lanes` rows per seed (seed k's lane l is row k * lanes + l: an
-        evaluation plays several episodes of a seed side by side)."""
-        gpu = next(iter(self.learners.values())).device.type == "cuda"
-        return open_stacks(self.recipe, phase.active, self.rows * lanes, evaluation, gpu=gpu)
+    @property
+    def _gpu(self) -> bool:
+        """Whether the learners are on a GPU (for the environments' `env.wait`)."""
+        return next(iter(self.learners.values())).device.type == "cuda"
 
     def _evaluator(self, phase: Phase, episodes: int) -> Stacks:
         """The stacks that play `episodes` evaluation episodes per seed, as many side by side as `eval_lanes` says."""
-        return self._stacks(phase, evaluation=True, lanes=eval_lanes(episodes, self.rows))
+        return open_group_evaluator(self.recipe, phase.active, episodes, self.rows, gpu=self._gpu)
 
     def run_phase(self, phase: Phase, budget: int, saved: GroupCheckpoint | None = None) -> list[PhaseResult]:
         """Train `phase.learn` for `budget` base steps in every seed, the other present layers frozen, from
         the start or from where `saved` stands."""
-        stack, rules, envs = self._stacks(phase, evaluation=False)
+        stack, rules, envs = open_stacks(self.recipe, phase.active, self.rows, evaluation=False, gpu=self._gpu)
         evaluator = self._evaluator(phase, self.recipe.eval.episodes)
         p = self.seeds[0].state.phase
         learn = [self.names.index(name) for name in phase.learn]

@@ -47,6 +47,16 @@ def open_stacks(recipe: Recipe, active: Sequence[str], rows: int, evaluation: bo
     return stacks_over(recipe, active, envs, evaluation)
 
 
+def open_group_evaluator(recipe: Recipe, active: Sequence[str], episodes: int, seeds: int,
+                         threshold: float | None = None, gpu: bool = False) -> Stacks:
+    """A group's evaluator of `episodes` episodes for each of its `seeds` seeds: its stack (at the recipe's evaluation
+    thresholds, or `threshold`) over `eval_lanes` rows per seed, stepped as the recipe's `env.workers` says (`gpu`:
+    the learners are on one)."""
+    env = recipe.env
+    envs = open_envs(env.id, seeds * eval_lanes(episodes, seeds), env.workers, env.threads, True, env.wait, gpu)
+    return stacks_over(recipe, active, envs, evaluation=True, threshold=threshold)
+
+
 def stacks_over(recipe: Recipe, active: Sequence[str], envs: Envs, evaluation: bool,
                 threshold: float | None = None) -> Stacks:
     """The stack of the `active` layers (at the recipe's evaluation thresholds, or `threshold`) and its rules over
@@ -149,11 +159,12 @@ def evaluate_group(rules: Rules, envs: Envs, policy: GroupPolicy, macs: dict[str
         composition = rules.compose()
         reward, terminated, truncated = envs.step(composition.action, live)
         rules.tick(live)
-        deciding, sizes = np.zeros((rows, len(present)), bool), np.zeros((rows, len(present)))
+        deciding, reached = np.zeros((rows, len(present)), bool), np.zeros((rows, len(present)), bool)
+        sizes = np.zeros((rows, len(present)))
         for j, i in enumerate(present):  # and each layer's mean |contribution| where reached (`StepRecord.size`)
-            deciding[:, j] = decided[i]
+            deciding[:, j], reached[:, j] = decided[i], composition.reached[i]
             sizes[:, j] = np.where(composition.reached[i], np.abs(composition.contributions[i]).mean(axis=1), 0.0)
-        meter.record(live, composition.action, reward, deciding, sizes)
+        meter.record(live, composition.action, reward, deciding, sizes, reached)
         ended = live & (terminated | truncated)
         for r in np.flatnonzero(ended).tolist():
             measured[r // lanes][int(episode[r])] = meter.finish(r)

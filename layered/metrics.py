@@ -52,6 +52,17 @@ def at_bounds(actions: np.ndarray, bounds: Bounds) -> np.ndarray:
     return np.all((actions <= low) | (actions >= high), axis=-1)
 
 
+def held(decided: np.ndarray, acted: np.ndarray, reached: np.ndarray, acted_before: np.ndarray,
+         reached_before: np.ndarray) -> np.ndarray:
+    """Whether the stack's rules repeated each step's action, whatever the networks output (arrays [..., layers], the
+    step's and, `_before`, the previous step's): every layer either had no part in either action (its part zero:
+    thresholded away, deferring, or kept out by a committed gate), or decided nothing anew and was reached by the
+    walk at both steps or at neither. Then every part is the one before, and so is their sum."""
+    quiet = ~acted & ~acted_before
+    kept = ~decided & (reached == reached_before)
+    return np.all(quiet | kept, axis=-1)
+
+
 def best_evaluation(returns: Sequence[float]) -> int:
     """Index of a phase's best evaluation among its mean `returns`: the highest, the earliest on ties (the
     evaluation whose weights a run keeps as its best)."""
@@ -60,13 +71,14 @@ def best_evaluation(returns: Sequence[float]) -> int:
 
 @dataclass(frozen=True)
 class EpisodeMeasures:
-    """One episode's return, length, action repetition (all of it, and that at the action bounds), jerk, decisions,
-    compute and per-layer activity."""
+    """One episode's return, length, action repetition (all of it, that at the action bounds and that the stack's
+    rules held), jerk, decisions, compute and per-layer activity."""
 
     ret: float
     steps: int
     repetition: float
     repetition_at_bounds: float
+    repetition_held: float
     jerk: float
     decisions: int  # steps at which any layer's network was evaluated
     compute: int  # multiply-accumulates of every network evaluation
@@ -82,14 +94,17 @@ def measure_episode(trace: Sequence[StepRecord], macs: dict[str, int], bounds: B
     names, steps = list(macs), len(trace)
     actions = np.array([s.action for s in trace], np.float64).reshape(steps, -1) if trace else np.zeros((0, 0))
     decided = np.array([[n in s.decided for n in names] for s in trace], bool).reshape(steps, len(names))
+    reached = np.array([[n in s.contributions for n in names] for s in trace], bool).reshape(steps, len(names))
     sizes = np.array([[s.size(n) for n in names] for s in trace], np.float64).reshape(steps, len(names))
     repeats = np.all(actions[1:] == actions[:-1], axis=1)
+    acted = sizes > 0
     return _measures(
         names, ret=_in_order(np.array([s.reward for s in trace], np.float64)), steps=steps,
         repeats=int(repeats.sum()), bound_repeats=int((repeats & at_bounds(actions[1:], bounds)).sum()),
+        held_repeats=int(held(decided[1:], acted[1:], reached[1:], acted[:-1], reached[:-1]).sum()),
         change=_in_order(np.abs(actions[1:] - actions[:-1]).sum(axis=1)), dims=actions.shape[1],
         decisions=int(decided.any(axis=1).sum()), compute=int((decided.astype(np.int64) @ _costs(names, macs)).sum()),
-        decided=decided.sum(axis=0), acted=(sizes > 0).sum(axis=0), contribution=_in_order(sizes))
+        decided=decided.sum(axis=0), acted=acted.sum(axis=0), contribution=_in_order(sizes))
 
 
 def _in_order(values: np.ndarray) -> Any:
@@ -102,15 +117,17 @@ def _costs(layers: Sequence[str], macs: dict[str, int]) -> np.ndarray:
     return np.array([macs[n] for n in layers], np.int64)
 
 
-def _measures(layers: Sequence[str], ret: float, steps: int, repeats: int, bound_repeats: int, change: float,
-              dims: int, decisions: int, compute: int, decided: np.ndarray, acted: np.ndarray,
+def _measures(layers: Sequence[str], ret: float, steps: int, repeats: int, bound_repeats: int, held_repeats: int,
+              change: float, dims: int, decisions: int, compute: int, decided: np.ndarray, acted: np.ndarray,
               contribution: np.ndarray) -> EpisodeMeasures:
-    """An episode's measures from its sums: of rewards, of steps whose action repeats the previous one (and of
-    those whose repeated action is at the action bounds), of the actions' absolute changes over steps and `dims`
-    dimensions, and per layer of decisions, steps acted and mean |contribution|."""
+    """An episode's measures from its sums: of rewards, of steps whose action repeats the previous one (of those
+    whose repeated action is at the action bounds, and of the steps whose action the rules held: `held`), of the
+    actions' absolute changes over steps and `dims` dimensions, and per layer of decisions, steps acted and mean
+    |contribution|."""
     return EpisodeMeasures(
         ret=float(ret), steps=steps, repetition=float(repeats / steps) if steps else 0.0,
         repetition_at_bounds=float(bound_repeats / steps) if steps else 0.0,
+        repetition_held=float(held_repeats / steps) if steps else 0.0,
         jerk=float(change / ((steps - 1) * dims)) if steps > 1 else 0.0, decisions=int(decisions), compute=int(compute),
         decided={n: int(v) for n, v in zip(layers, decided, strict=True)},
         acted={n: int(v) for n, v in zip(layers, acted, strict=True)},
@@ -129,17 +146,20 @@ class EpisodeMeter:
         width = len(self.layers)
         self.ret, self.steps = np.zeros(rows), np.zeros(rows, np.int64)
         self.repeats, self.bound_repeats = np.zeros(rows, np.int64), np.zeros(rows, np.int64)
+        self.held_repeats = np.zeros(rows, np.int64)
         self.change = np.zeros(rows)  # |a_t - a_t-1| summed over dimensions
         self.decisions, self.compute = np.zeros(rows, np.int64), np.zeros(rows, np.int64)
         self.decided, self.acted = np.zeros((rows, width), np.int64), np.zeros((rows, width), np.int64)
         self.contribution = np.zeros((rows, width))
         self.previous: np.ndarray | None = None  # each row's last executed action
+        self.acted_before, self.reached_before = np.zeros((rows, width), bool), np.zeros((rows, width), bool)
         self.dims = 0
 
     def record(self, rows: np.ndarray, action: np.ndarray, reward: np.ndarray, decided: np.ndarray,
-               sizes: np.ndarray) -> None:
+               sizes: np.ndarray, reached: np.ndarray) -> None:
         """One base step in the `rows` mask: the executed `action` ([rows, A]), `reward`, which layers `decided`
-        ([rows, layers]) and each layer's mean |contribution| (`StepRecord.size`, [rows, layers])."""
+        ([rows, layers]), each layer's mean |contribution| (`StepRecord.size`, [rows, layers]) and which layers the
+        walk `reached` ([rows, layers])."""
         action = np.asarray(action, np.float64)
         if self.previous is None:
             self.previous, self.dims = np.zeros_like(action), action.shape[1]
@@ -147,6 +167,10 @@ class EpisodeMeter:
         repeated = later & np.all(action == self.previous, axis=1)
         self.repeats += repeated
         self.bound_repeats += repeated & at_bounds(action, self.bounds)
+        acted = sizes > 0
+        self.held_repeats += later & held(decided, acted, reached, self.acted_before, self.reached_before)
+        self.acted_before = np.where(rows[:, None], acted, self.acted_before)
+        self.reached_before = np.where(rows[:, None], reached, self.reached_before)
         self.change += np.where(later, np.abs(action - self.previous).sum(axis=1), 0.0)
         self.previous = np.where(rows[:, None], action, self.previous)
         self.ret += np.where(rows, reward, 0.0)
@@ -155,16 +179,17 @@ class EpisodeMeter:
         self.decisions += decided.any(axis=1)
         self.compute += decided.astype(np.int64) @ self.macs
         self.decided += decided
-        self.acted += (sizes > 0) & rows[:, None]
+        self.acted += acted & rows[:, None]
         self.contribution += np.where(rows[:, None], sizes, 0.0)
 
     def finish(self, row: int) -> EpisodeMeasures:
         """The measures of the episode in `row`, which starts over."""
         measures = _measures(self.layers, self.ret[row], int(self.steps[row]), int(self.repeats[row]),
-                             int(self.bound_repeats[row]), self.change[row], self.dims, int(self.decisions[row]),
-                             int(self.compute[row]), self.decided[row], self.acted[row], self.contribution[row])
-        for counts in (self.ret, self.steps, self.repeats, self.bound_repeats, self.change, self.decisions,
-                       self.compute, self.decided, self.acted, self.contribution):
+                             int(self.bound_repeats[row]), int(self.held_repeats[row]), self.change[row], self.dims,
+                             int(self.decisions[row]), int(self.compute[row]), self.decided[row], self.acted[row],
+                             self.contribution[row])
+        for counts in (self.ret, self.steps, self.repeats, self.bound_repeats, self.held_repeats, self.change,
+                       self.decisions, self.compute, self.decided, self.acted, self.contribution):
             counts[row] = 0
         return measures
 
@@ -186,6 +211,7 @@ class Evaluation:
     return_min: float = float("nan")  # the lowest and highest episode return
     return_max: float = float("nan")
     repetition_at_bounds: float = float("nan")  # (NaN in the curves of checkpoints taken before it was measured)
+    repetition_held: float = float("nan")  # (likewise)
 
     PER_LAYER: ClassVar[tuple[str, ...]] = ("decided", "acted", "contribution")
 
@@ -194,7 +220,8 @@ class Evaluation:
         out = {
             "return_mean": self.return_mean, "return_std": self.return_std, "return_min": self.return_min,
             "return_max": self.return_max, "repetition": self.repetition,
-            "repetition_at_bounds": self.repetition_at_bounds, "jerk": self.jerk, "decisions": self.decisions,
+            "repetition_at_bounds": self.repetition_at_bounds, "repetition_held": self.repetition_held,
+            "jerk": self.jerk, "decisions": self.decisions,
             "compute": self.compute, "episode_steps": self.steps,
         }
         for measure in self.PER_LAYER:
@@ -204,8 +231,8 @@ class Evaluation:
     @classmethod
     def columns(cls, layers: Sequence[str]) -> list[str]:
         """Every column `row` can give for a stack of `layers`, in its order."""
-        stack = ["return_mean", "return_std", "return_min", "return_max", "repetition", "repetition_at_bounds", "jerk",
-                 "decisions", "compute", "episode_steps"]
+        stack = ["return_mean", "return_std", "return_min", "return_max", "repetition", "repetition_at_bounds",
+                 "repetition_held", "jerk", "decisions", "compute", "episode_steps"]
         return stack + [f"{measure}_{n}" for measure in cls.PER_LAYER for n in layers]
 
 
@@ -219,6 +246,7 @@ def summarise(episodes: Sequence[EpisodeMeasures]) -> Evaluation:
         return_std=float(returns.std()),
         repetition=float(np.mean([e.repetition for e in episodes])),
         repetition_at_bounds=float(np.mean([e.repetition_at_bounds for e in episodes])),
+        repetition_held=float(np.mean([e.repetition_held for e in episodes])),
         jerk=float(np.mean([e.jerk for e in episodes])),
         decisions=float(np.mean([e.decisions for e in episodes])),
         compute=float(np.mean([e.compute for e in episodes])),

@@ -39,15 +39,16 @@ def _percent(row: dict[str, Any], key: str) -> str:
 def results_table(rows: Sequence[dict[str, Any]]) -> str:
     """Markdown table of per-phase (or per-evaluation) results rows as written to results.json; for
     phases, a second table of the final and best weights evaluated again on fresh episodes."""
-    columns = ["phase", "learns", "present", "return", "AUC", "action repetition", "of it at the action bounds", "jerk",
-               "decisions / episode", "compute / episode", "evaluated", "acted", "mean \\|contribution\\|"]
+    columns = ["phase", "learns", "present", "return", "AUC", "action repetition", "of it at the action bounds",
+               "of it held by the rules", "jerk", "decisions / episode", "compute / episode", "evaluated", "acted",
+               "mean \\|contribution\\|"]
     lines = ["| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
     for r in rows:
         auc = "n/a" if r.get("auc") is None else f"{r['auc']:.3f}"
         lines.append(
             f"| {r.get('phase', '')} | {'+'.join(r.get('learn', []))} | {'+'.join(r.get('active', []))} "
             f"| {r['return_mean']:.1f} ± {r['return_std']:.1f} | {auc} | {100 * r['repetition']:.1f}% "
-            f"| {_percent(r, 'repetition_at_bounds')} | {r['jerk']:.3f} "
+            f"| {_percent(r, 'repetition_at_bounds')} | {_percent(r, 'repetition_held')} | {r['jerk']:.3f} "
             f"| {r['decisions']:.1f} of {r['episode_steps']:.0f} | {_macs(r['compute'])} "
             f"| {_activity(r, 'decided_')} | {_activity(r, 'acted_')} | {_activity(r, 'contribution_', '{:.3f}')} |"
         )
@@ -55,15 +56,16 @@ def results_table(rows: Sequence[dict[str, Any]]) -> str:
     if fresh:
         lines += ["", "Final and best weights of each phase, each evaluated again on fresh episodes (the best "
                   "evaluation's own return is biased upwards by the choice):", "",
-                  "| phase | final: return | final: action repetition | final: at the action bounds | best: step "
-                  "| best: return at that evaluation | best: return | best: action repetition | best: at the action "
-                  "bounds |", "|---" * 9 + "|"]
+                  "| phase | final: return | final: action repetition | final: at the action bounds | final: held "
+                  "by the rules | best: step | best: return at that evaluation | best: return | best: action "
+                  "repetition | best: at the action bounds | best: held by the rules |", "|---" * 11 + "|"]
         lines += [
             f"| {r['phase']} | {r['fresh_final_return_mean']:.1f} ± {r['fresh_final_return_std']:.1f} "
             f"| {100 * r['fresh_final_repetition']:.1f}% | {_percent(r, 'fresh_final_repetition_at_bounds')} "
-            f"| {r['best_step']} | {r['best_return_mean']:.1f} "
+            f"| {_percent(r, 'fresh_final_repetition_held')} | {r['best_step']} | {r['best_return_mean']:.1f} "
             f"| {r['fresh_best_return_mean']:.1f} ± {r['fresh_best_return_std']:.1f} "
-            f"| {100 * r['fresh_best_repetition']:.1f}% | {_percent(r, 'fresh_best_repetition_at_bounds')} |"
+            f"| {100 * r['fresh_best_repetition']:.1f}% | {_percent(r, 'fresh_best_repetition_at_bounds')} "
+            f"| {_percent(r, 'fresh_best_repetition_held')} |"
             for r in fresh
         ]
     return "\n".join(lines)
@@ -166,17 +168,19 @@ Metric = tuple[str, str, str]  # (results key, column name, format of mean and s
 TABLE_1: list[Metric] = [("auc", "AUC", "{:.3f}"), ("return_mean", "return", "{:.1f}")]
 TABLE_2: list[Metric] = [("repetition", "action repetition", "{:.1%}"),
                          ("repetition_at_bounds", "of it at the action bounds", "{:.1%}"),
+                         ("repetition_held", "of it held by the rules", "{:.1%}"),
                          ("decisions", "decisions", "{:.1f}")]
 EXTRA_MEASURES: list[Metric] = [("jerk", "jerk", "{:.3f}"), ("compute", "MACs / episode", "{:.3g}")]
 TABLE_3: list[Metric] = [
     ("auc", "AUC", "{:.3f}"), ("return_mean", "return", "{:.1f}"), ("repetition", "AR", "{:.1%}"),
-    ("repetition_at_bounds", "AR at bounds", "{:.1%}"),
+    ("repetition_at_bounds", "AR at bounds", "{:.1%}"), ("repetition_held", "AR held", "{:.1%}"),
 ]
 PER_SEED: list[Metric] = [
     ("return_mean", "return", "{:.1f}"), ("auc", "AUC", "{:.3f}"), ("run_auc", "AUC, whole run", "{:.3f}"),
     ("fresh_final_return_mean", "final", "{:.1f}"), ("fresh_best_return_mean", "best", "{:.1f}"),
     ("best_step", "best step", "{:.0f}"), ("fresh_best_repetition", "best AR", "{:.1%}"),
     ("fresh_best_repetition_at_bounds", "best AR at bounds", "{:.1%}"),
+    ("fresh_best_repetition_held", "best AR held", "{:.1%}"),
 ]
 """The per-seed table's measures of a run's last phase (the whole run's AUC only where it trained in phases, or
 continued a stack that another run's phases trained: `compare.phased`)."""
@@ -186,6 +190,8 @@ FINAL_AND_BEST: list[Metric] = [
     ("fresh_best_repetition", "best AR", "{:.1%}"),
     ("fresh_final_repetition_at_bounds", "final AR at bounds", "{:.1%}"),
     ("fresh_best_repetition_at_bounds", "best AR at bounds", "{:.1%}"),
+    ("fresh_final_repetition_held", "final AR held", "{:.1%}"),
+    ("fresh_best_repetition_held", "best AR held", "{:.1%}"),
 ]
 
 

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import csv
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from layered.evaluate import evaluation_seed
 from layered.learners import Learner
+from layered.metrics import Evaluation
 from layered.plugins import load_plugins
 from layered.recipe import Recipe, load_recipe
 from layered.report import DEFAULT_SWEEP
@@ -90,6 +91,35 @@ def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | Non
     print(f"layered: note: {run_dir} {state}: {where}; evaluating {chosen}", file=sys.stderr)
     return TrainedRun(run_dir, recipe, load_learners(recipe, run_dir, weights, at.stack_phase, under_way),
                       list(phase.active), weights, at)
+
+
+def open_group(directory: Path, weights: str | None = None, plugins: list[str] | None = None,
+               fresh: bool = False) -> list[TrainedRun]:
+    """The seeds of the group in `directory`, each opened as `open_run` opens a run (an unfinished group as it stands
+    at its last checkpoint), with `fresh` on their fresh episodes."""
+    from layered.group_state import group_info, seed_dirs
+
+    return [replace(open_run(out, weights, plugins, unfinished=True), fresh=fresh)
+            for out in seed_dirs(directory, group_info(directory).group)]
+
+
+def evaluate_group_runs(runs: list[TrainedRun], episodes: int, threshold: float | None = None,
+                        progress: bool = False) -> list[Evaluation]:
+    """Each of a group's seeds (`open_group`) evaluated over `episodes` episodes as the group's own evaluations are:
+    the seeds' learners stacked (`layered.group.stack_learners`) and their episodes played side by side, so that the
+    numbers are those training wrote, in the last digit too (where an actor settles, exact repetition depends on
+    how the products were summed: metrics.md)."""
+    from layered.group import stack_learners
+    from layered.group_eval import close_evaluator, evaluate_stacks, open_group_evaluator
+
+    first = runs[0]
+    stacked = stack_learners([run.recipe for run in runs], [run.learners for run in runs])
+    evaluator = open_group_evaluator(first.recipe, first.active, episodes, len(runs), threshold)
+    try:
+        return evaluate_stacks(evaluator, stacked, lambda learner, obs: learner.greedy(obs), episodes,
+                               [run.seed for run in runs], progress)
+    finally:
+        close_evaluator(evaluator)
 
 
 def _latest_weights(recipe: Recipe, at: Standing) -> dict[str, dict[str, Any]]:

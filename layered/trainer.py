@@ -32,7 +32,8 @@ from layered.replay_journal import ReplayJournal
 from layered.results import mean_losses, write_finished_phases
 from layered.runstate import LoopState, save_state
 
-FRESH_MEASURES = ("return_mean", "return_std", "repetition", "repetition_at_bounds", "decisions", "jerk")
+FRESH_MEASURES = ("return_mean", "return_std", "repetition", "repetition_at_bounds", "repetition_held", "decisions",
+                  "jerk")
 
 
 @dataclass(frozen=True)

@@ -19,10 +19,14 @@ def files(tmp_path: Path) -> dict[str, str]:
     (tmp_path / "folder.toml").mkdir()
     (tmp_path / "cartpole.toml").write_text('[env]\nid = "CartPole-v1"\n[[layers]]\nname = "a"\nperiod = 1\n')
     (tmp_path / "a-file").write_text("not a directory")
-    for seed in (10, 2, 0):  # a group's directory: the runs of its seeds
+    for seed in (10, 2, 0):  # a group's directory: the runs of its seeds (their run.json empty)
         (tmp_path / "group" / f"seed{seed}").mkdir(parents=True)
         for name in ("recipe.toml", "run.json"):
             (tmp_path / "group" / f"seed{seed}" / name).write_text("")
+    for seed in (10, 2, 0):  # a sweep's setup: runs of the seeds, each trained alone
+        (tmp_path / "sweep" / f"seed{seed}").mkdir(parents=True)
+        (tmp_path / "sweep" / f"seed{seed}" / "recipe.toml").write_text("")
+        (tmp_path / "sweep" / f"seed{seed}" / "run.json").write_text('{"label": "x", "max_steps": null, "plugins": []}')
     return {"tmp": str(tmp_path)}
 
 
@@ -59,7 +63,8 @@ CASES = {
     "out is a file": (["train", str(TLA_C), "--out", "{tmp}/a-file"], "is a file, not a directory"),
     "unknown option": (["train", str(TLA_C), "--stpes", "5"], "unrecognized arguments: --stpes"),
     "resume a non-run": (["resume", "{tmp}"], "is not a run directory"),
-    "eval a group's directory": (["eval", "{tmp}/group"], "it holds the runs seed0, seed2, seed10: name one of them"),
+    "eval a sweep's directory": (["eval", "{tmp}/sweep"], "it holds the runs seed0, seed2, seed10: name one of them"),
+    "eval a group of damaged runs": (["eval", "{tmp}/group"], "seed0/run.json is damaged"),
     "export a group's directory": (["export", "{tmp}/group"], "group/seed0)"),
     "eval a non-run": (["eval", "{tmp}"], "is not a run directory"),
     "eval zero episodes": (["eval", "{tmp}", "--episodes", "0"], "--episodes: must be positive"),

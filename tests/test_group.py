@@ -2,6 +2,7 @@
 gives, each seed writes an ordinary run directory, and a group run is deterministic."""
 
 import csv
+import json
 import re
 import statistics
 from pathlib import Path
@@ -14,7 +15,8 @@ from conftest import play_through_agent_view
 from layered.agents import make_aec_env
 from layered.cli import main
 from layered.evaluate import evaluate
-from layered.group import Group, Seed, _stack_learners, group_recipes
+from layered.group import Group, Seed, group_recipes, stack_learners
+from layered.group_eval import open_stacks
 from layered.interrupt import StopRequest
 from layered.learner_set import build_learners, load_learners
 from layered.logs import CsvLog
@@ -22,6 +24,7 @@ from layered.best_journal import BestJournal
 from layered.checkpoint_writer import CheckpointWriter
 from layered.replay_journal import ReplayJournal
 from layered.results import EPISODE_FIELDS, metrics_fields
+from layered.trainer import FRESH_MEASURES
 from layered.rundir import RunDirError
 from layered.runs import resume
 from layered.orders import phases_of
@@ -39,7 +42,7 @@ def tiny_group(recipe, seeds, tmp_path, overrides=()):
     for seed in seeds_:
         seed.metrics.start()
         seed.episodes.start()
-    group = Group(seeds_, _stack_learners(recipes, singles), None, False, tmp_path, [""] * len(recipes), StopRequest(),
+    group = Group(seeds_, stack_learners(recipes, singles), None, False, tmp_path, [""] * len(recipes), StopRequest(),
                   ReplayJournal(tmp_path / "replay"), BestJournal(tmp_path / "best"), CheckpointWriter())
     return group, recipes, singles
 
@@ -96,7 +99,7 @@ def test_each_seeds_transitions_are_those_its_own_stack_gives(recipe, overrides,
 def test_a_group_evaluates_each_seed_as_its_own_stack_would(tmp_path, lanes, phase):
     group, recipes, singles = tiny_group("pendulum/tla-c.toml", [0, 1], tmp_path)
     phase = phases_of(recipes[0])[phase]
-    evaluator = group._stacks(phase, evaluation=True, lanes=lanes)
+    evaluator = open_stacks(recipes[0], phase.active, 2 * lanes, evaluation=True)  # seed k's lane l: row k * lanes + l
     together = group._evaluations(phase, evaluator, 3)  # (seeded train.seed + eval.seed_offset, 100)
     for k, recipe in enumerate(recipes):
         env = make_aec_env(recipe, active=list(phase.active), evaluation=True, keep_trace=True)
@@ -137,6 +140,16 @@ def test_a_group_writes_each_seed_an_ordinary_run_directory_and_writes_it_again_
     assert (tmp_path / "a/seed2/metrics.csv").read_bytes() != (tmp_path / "a/seed5/metrics.csv").read_bytes()
     capsys.readouterr()
     assert main(["eval", str(tmp_path / "a/seed5"), "--episodes", "1"]) == 0
+    # the group evaluated again as a group: every measure its training wrote for its final weights, to the digit
+    assert main(["eval", str(tmp_path / "a"), "--fresh", "--weights", "final"]) == 0
+    for seed in (2, 5):
+        final = json.loads((tmp_path / f"a/seed{seed}/results.json").read_text())["phases"][-1]
+        again = json.loads((tmp_path / f"a/seed{seed}/eval/weights-final/fresh/"
+                            "threshold-recipe-episodes-1-group.json").read_text())
+        assert {k: again[k] for k in FRESH_MEASURES} == {k: final[f"fresh_final_{k}"] for k in FRESH_MEASURES}
+    assert "seed2 " in capsys.readouterr().out
+    assert main(["eval", str(tmp_path / "a"), "--video"]) == 2
+    assert "--video: of one run" in capsys.readouterr().err
     assert main(["report", str(tmp_path / "a"), "--out", str(tmp_path / "report")]) == 0
     assert "pendulum/tla-c" in capsys.readouterr().out
     with pytest.raises(RunDirError, match="group of seeds"):

@@ -9,6 +9,7 @@ from layered.metrics import (
     StepRecord,
     at_bounds,
     best_evaluation,
+    held,
     measure_episode,
     normalised_auc,
     summarise,
@@ -85,6 +86,8 @@ def test_measure_episode_counts_decisions_compute_and_activity():
     )
     m = measure_episode(trace, {"slow": 10, "fast": 3}, (a(-1.0), a(1.0)))
     assert (m.ret, m.steps, m.repetition, m.repetition_at_bounds, m.decisions) == (-3.5, 4, 0.5, 0.25, 3)
+    # held by the rules: step 2 only (slow holds, fast had no part before or after); step 4's 0.2 is fast's anew
+    assert m.repetition_held == 0.25
     assert m.jerk == pytest.approx(0.8 / 3)
     assert m.compute == 10 + 3 * 3
     assert m.decided == {"slow": 1, "fast": 3}
@@ -102,26 +105,31 @@ def test_a_meter_of_several_rows_measures_each_rows_episode_as_its_own_trace_wou
     decided = [[1, 1], [0, 1], [0, 0], [0, 1]]
     sizes = [[0.5, 0.0], [0.5, 0.0], [0.5, 0.5], [0.5, 0.0]]
     for t in range(4):
+        sized = np.array([sizes[t], [0.0, 0.25]])
         meter.record(rows[t], np.array([[actions[t]], [7.0 + t]]), np.array([rewards[t], 10.0]),
-                     np.array([decided[t], [0, 1]], bool), np.array([sizes[t], [0.0, 0.25]]))
+                     np.array([decided[t], [0, 1]], bool), sized, sized > 0)
     row0, row1 = meter.finish(0), meter.finish(1)
     assert (row0.ret, row0.steps, row0.repetition, row0.decisions, row0.compute) == (-3.5, 4, 0.5, 3, 19)
     assert row0.repetition_at_bounds == 0.0, "its repeats, of 1.0 and 0.2, are inside (-1, 10)"
+    assert row0.repetition_held == 0.25
     assert row0.jerk == pytest.approx(0.8 / 3)
     assert row0.decided == {"slow": 1, "fast": 3} and row0.acted == {"slow": 4, "fast": 1}
     assert row0.contribution == {"slow": 2.0, "fast": 0.5}
     # row 1: actions 8 then 10 (no repeat, jerk 2), two fast decisions of 3 MACs, fast acting with 0.25 twice
     assert (row1.ret, row1.steps, row1.repetition, row1.jerk, row1.decisions, row1.compute) == (20.0, 2, 0.0, 2.0, 2, 6)
+    assert row1.repetition_held == 0.0
     assert row1.decided == {"slow": 0, "fast": 2} and row1.acted == {"slow": 0, "fast": 2}
     assert row1.contribution == {"slow": 0.0, "fast": 0.5}
     meter.record(np.array([False, True]), np.array([[0.0], [10.0]]), np.array([0.0, 1.0]), np.zeros((2, 2), bool),
-                 np.zeros((2, 2)))
+                 np.zeros((2, 2)), np.zeros((2, 2), bool))
     again = meter.finish(1)
     assert (again.ret, again.steps, again.repetition, again.jerk) == (1.0, 1, 0.0, 0.0), "a new episode's first step"
     for _ in range(2):
         meter.record(np.array([False, True]), np.array([[0.0], [10.0]]), np.array([0.0, 1.0]),
-                     np.zeros((2, 2), bool), np.zeros((2, 2)))
-    assert meter.finish(1).repetition_at_bounds == 0.5, "10 repeated, at the upper bound: one of two steps"
+                     np.zeros((2, 2), bool), np.zeros((2, 2)), np.zeros((2, 2), bool))
+    last = meter.finish(1)
+    assert last.repetition_at_bounds == 0.5, "10 repeated, at the upper bound: one of two steps"
+    assert last.repetition_held == 0.5, "no layer decided or had a part: the second step is held"
 
 
 def test_a_meters_rows_measure_bit_for_bit_what_measure_episode_measures_of_their_traces():
@@ -136,13 +144,16 @@ def test_a_meters_rows_measure_bit_for_bit_what_measure_episode_measures_of_thei
         action[rng.random(3) < 0.2] = (0.5, 0.0)  # and some not
         reward, decided = rng.normal(size=3), rng.random((3, 2)) < 0.4
         sizes = np.where(rng.random((3, 2)) < 0.5, np.abs(rng.normal(size=(3, 2))), 0.0)
-        meter.record(rows, action, reward, decided, sizes)
+        reached = (sizes > 0) | (rng.random((3, 2)) < 0.5)  # some reached with no part
+        meter.record(rows, action, reward, decided, sizes, reached)
         for k in np.flatnonzero(rows):
-            contributions = {n: np.array([sizes[k, j]]) for j, n in enumerate(macs) if sizes[k, j] > 0}
+            contributions = {n: np.array([sizes[k, j]]) for j, n in enumerate(macs) if reached[k, j]}
             traces[k].append(StepRecord(action[k], float(reward[k]), tuple(n for j, n in enumerate(macs)
                                                                              if decided[k, j]), contributions))
     for k in range(3):
-        assert meter.finish(k) == measure_episode(traces[k], macs, bounds), f"row {k}"
+        measured = measure_episode(traces[k], macs, bounds)
+        assert meter.finish(k) == measured, f"row {k}"
+        assert 0 < measured.repetition_held < 1, "the rows' steps are held and not, or the test shows nothing"
 
 
 def test_summarise_means_returns_and_pools_activity_over_steps():
@@ -188,21 +199,127 @@ def test_summarise_of_one_episode_is_that_episode():
     row = s.row()
     assert list(row) == Evaluation.columns(["x"])
     assert row == {"return_mean": -4.0, "return_std": 0.0, "return_min": -4.0, "return_max": -4.0,
-                   "repetition": 0.0, "repetition_at_bounds": 0.0,
+                   "repetition": 0.0, "repetition_at_bounds": 0.0, "repetition_held": 0.0,
                    "jerk": 1.0, "decisions": 1.0, "compute": 2.0, "episode_steps": 2.0,
                    "decided_x": 0.5, "acted_x": 0.5, "contribution_x": 0.25}
 
 
-def test_a_loop_state_saved_before_the_repetition_at_the_bounds_was_measured_loads_with_it_unknown():
+@pytest.mark.parametrize("unknown", [("repetition_at_bounds", "repetition_held"), ("repetition_held",)])
+def test_a_loop_state_saved_before_a_repetition_measure_was_measured_loads_with_it_unknown(unknown):
     import json
 
     from layered.runstate import LoopState
 
     state = LoopState()
-    state.curve.append((100, Evaluation(-150.0, 5.0, 0.5, 0.25, 200.0, 2e6, 200.0, {}, {}, {}, -160.0, -140.0, 0.125)))
+    state.curve.append((100, Evaluation(-150.0, 5.0, 0.5, 0.25, 200.0, 2e6, 200.0, {}, {}, {}, -160.0, -140.0, 0.125,
+                                        0.0625)))
     data = json.loads(state.to_json())
-    assert data["curve"][0][1]["repetition_at_bounds"] == 0.125
-    del data["curve"][0][1]["repetition_at_bounds"]  # as a checkpoint of an earlier version holds its curve
+    assert (data["curve"][0][1]["repetition_at_bounds"], data["curve"][0][1]["repetition_held"]) == (0.125, 0.0625)
+    for key in unknown:  # as a checkpoint of an earlier version holds its curve
+        del data["curve"][0][1][key]
     step, evaluation = LoopState.from_json(json.dumps(data)).curve[0]
     assert (step, evaluation.return_mean, evaluation.repetition) == (100, -150.0, 0.5)
-    assert np.isnan(evaluation.repetition_at_bounds)
+    assert np.isnan(evaluation.repetition_held)
+    assert np.isnan(evaluation.repetition_at_bounds) == ("repetition_at_bounds" in unknown)
+
+
+def played_by_rules(rules, outputs, steps):
+    """One stack's steps as the agent view records them, its layer i deciding `outputs[i](t)` at step t: which
+    layers decided, and each reached layer's part of the action."""
+    trace, names = [], [layer.name for layer in rules.layers]
+    for t in range(steps):
+        decided = rules.decide_all(np.zeros((1, 3), np.float32), lambda i, _, rows, t=t: np.array([outputs[i](t)]))
+        composition = rules.compose()
+        parts = {names[i]: c[0].copy() for i, c in composition.contributions.items() if composition.reached[i][0]}
+        trace.append(StepRecord(composition.action[0].copy(), 0.0, tuple(names[i] for i, m in decided.items() if m[0]),
+                                parts))
+        rules.tick()
+    return trace
+
+
+def evaluation_rules(periods, kinds, threshold=None, **layer_settings):
+    """The rules of a stack of `periods` and combiners `kinds` as evaluation runs it (with `threshold`, a fraction
+    of the maximum action, at every level), actions in [-2, 2]."""
+    from conftest import stack_recipe
+    from gymnasium.spaces import Box
+
+    from layered.stack import Stack
+
+    recipe = stack_recipe(periods, kinds)
+    layers = [layer.model_copy(update={key: values[k] for key, values in layer_settings.items()})
+              for k, layer in enumerate(recipe.layers)]
+    return Stack(recipe.model_copy(update={"layers": layers}), Box(-1.0, 1.0, (3,), np.float32),
+                 Box(-2.0, 2.0, (1,), np.float32), evaluation=threshold is not None, threshold=threshold).rules
+
+
+def test_held_repetition_under_a_threshold_counts_the_slow_layers_holds_while_the_fast_one_is_zeroed():
+    """slow (period 2) holds 1.0; fast (period 1) is zeroed where its effect is below 0.1 x 2 = 0.2.
+    step:   0    1    2    3     4    5
+    fast:   0.1  0.1  0.5  0.05  0.0  0.1   (admitted only at step 2)
+    action: 1.0  1.0  1.5  1.0   1.0  1.0
+    held:   -    yes  no (fast acts)  no (fast acted before)  no (slow decides anew)  yes"""
+    rules = evaluation_rules([2, 1], "residual-clip", threshold=0.1)
+    fast = [0.1, 0.1, 0.5, 0.05, 0.0, 0.1]
+    trace = played_by_rules(rules, [lambda t: [1.0], lambda t: [fast[t]]], 6)
+    assert [float(s.action[0]) for s in trace] == [1.0, 1.0, 1.5, 1.0, 1.0, 1.0]
+    m = measure_episode(trace, {"l0": 1, "l1": 1}, (a(-2.0), a(2.0)))
+    assert (m.repetition, m.repetition_held) == (pytest.approx(3 / 6), pytest.approx(2 / 6))
+
+
+def test_held_repetition_under_a_gate_counts_the_commits_holds_and_the_zeroed_fast_layers():
+    """A gate (period 2) over a fast layer (period 1).
+    step:   0         1     2         3     4         5     6         7
+    slow:   commit .5  -    commit .5  -    defer      -    defer      -
+    fast:   (kept out)      (kept out)      0.2       0.2   0.0       0.0
+    action: 0.5       0.5   0.5       0.5   0.2       0.2   0.0       0.0
+    held:   -         yes   no        yes   no        no    no        yes
+    (at 2 the gate decides anew; at 5 the fast layer's 0.2 is decided anew; at 6 it stops having a part)"""
+    rules = evaluation_rules([2, 1], "gate")
+    slow = [[0.5, 1.0], None, [0.5, 1.0], None, [0.9, -1.0], None, [0.9, -1.0], None]
+    fast = [None, None, None, None, [0.2], [0.2], [0.0], [0.0]]
+    trace = played_by_rules(rules, [lambda t: slow[t], lambda t: fast[t]], 8)
+    assert [float(s.action[0]) for s in trace] == pytest.approx([0.5, 0.5, 0.5, 0.5, 0.2, 0.2, 0.0, 0.0])
+    assert [s.decided for s in trace] == [("l0",), (), ("l0",), (), ("l0", "l1"), ("l1",), ("l0", "l1"), ("l1",)]
+    m = measure_episode(trace, {"l0": 1, "l1": 1}, (a(-2.0), a(2.0)))
+    assert (m.repetition, m.repetition_held) == (pytest.approx(5 / 8), pytest.approx(3 / 8))
+
+
+def test_a_single_layer_deciding_every_step_holds_nothing_though_its_actions_repeat():
+    trace = played_by_rules(evaluation_rules([1], "residual-clip"), [lambda t: [1.0]], 5)
+    m = measure_episode(trace, {"l0": 1}, (a(-2.0), a(2.0)))
+    assert (m.repetition, m.repetition_held) == (pytest.approx(4 / 5), 0.0)
+
+
+@pytest.mark.parametrize(("periods", "kinds", "threshold", "settings"), [
+    ([2, 1], "residual-clip", 0.3, {}),
+    ([4, 2, 1], ["gate", "residual-clip", "residual-clip"], 0.2, {"delay": [0, 1, 1]}),
+    ([2, 1], "gate", None, {"learn_from_commits": [False, True]}),
+    ([4, 2, 1], ["gate", "gate", "residual-clip"], None, {"learn_from_commits": [False, False, True]}),
+    ([2, 1], "residual-clip", 0.3, {"max_repeat": [3, 1]}),
+    ([4, 1], "residual-clip", None, {"delay": [1, 2]}),
+])
+def test_every_step_the_rules_held_repeats_its_action_exactly(periods, kinds, threshold, settings):
+    """Random outputs, often zero or the layer's last again, over stacks with thresholds, gates, delays, a layer
+    deciding under a committed gate and repeat counts: a held step's action is the step before's, every time."""
+    rules = evaluation_rules(periods, kinds, threshold, **settings)
+    rng, last = np.random.default_rng(3), {}
+
+    def output(i):
+        def decide(t):
+            layer = rules.layers[i]
+            new = rng.uniform(layer.low, layer.high).astype(np.float32)
+            new[: rng.integers(0, 2) if rng.random() < 0.4 else 0] = 0.0  # its action part zero
+            last[i] = last.get(i, new) if rng.random() < 0.3 else new
+            return last[i]
+        return decide
+
+    trace = played_by_rules(rules, [output(i) for i in range(len(periods))], 400)
+    names = [layer.name for layer in rules.layers]
+    decided = np.array([[n in s.decided for n in names] for s in trace])
+    reached = np.array([[n in s.contributions for n in names] for s in trace])
+    acted = np.array([[s.size(n) > 0 for n in names] for s in trace])
+    kept = held(decided[1:], acted[1:], reached[1:], acted[:-1], reached[:-1])
+    actions = np.array([s.action for s in trace])
+    repeated = np.all(actions[1:] == actions[:-1], axis=1)
+    assert kept.sum() >= 20, "few held steps: the test shows little"
+    assert np.all(repeated[kept]), f"held but changed at steps {np.flatnonzero(kept & ~repeated) + 1}"

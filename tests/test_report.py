@@ -439,23 +439,29 @@ def test_step_axes_read_as_thousands_and_millions():
     plt.close(fig)
 
 
-def test_the_repetition_at_the_bounds_shows_beside_the_repetition_and_as_n_a_in_results_written_before_it(tmp_path):
+def test_the_repetitions_at_the_bounds_and_held_show_beside_the_repetition_and_as_n_a_in_older_results(tmp_path):
     from layered.report import results_table, write_report
 
     row = {"phase": 0, "learn": ["fast"], "active": ["fast"], "return_mean": -150.0, "return_std": 5.0, "auc": 0.9,
-           "repetition": 0.5, "repetition_at_bounds": 0.125, "jerk": 0.25, "decisions": 200.0, "episode_steps": 200.0,
-           "compute": 2e6}
+           "repetition": 0.5, "repetition_at_bounds": 0.125, "repetition_held": 0.25, "jerk": 0.25, "decisions": 200.0,
+           "episode_steps": 200.0, "compute": 2e6}
     fresh = {"fresh_final_return_mean": -160.0, "fresh_final_return_std": 1.0, "fresh_final_repetition": 0.75,
-             "fresh_final_repetition_at_bounds": 0.5, "best_step": 100, "best_return_mean": -140.0,
-             "fresh_best_return_mean": -150.0, "fresh_best_return_std": 2.0, "fresh_best_repetition": 0.25,
-             "fresh_best_repetition_at_bounds": 0.0}
-    old = {k: v for k, v in (row | fresh).items() if "at_bounds" not in k}  # a results.json of an earlier version
-    table = results_table([row | fresh, old]).splitlines()
-    assert "| 0.900 | 50.0% | 12.5% | 0.250 |" in table[2] and "| 0.900 | 50.0% | n/a | 0.250 |" in table[3]
-    assert "| -160.0 ± 1.0 | 75.0% | 50.0% | 100 | -140.0 | -150.0 ± 2.0 | 25.0% | 0.0% |" in table[-2]
-    assert "| -160.0 ± 1.0 | 75.0% | n/a | 100 | -140.0 | -150.0 ± 2.0 | 25.0% | n/a |" in table[-1]
+             "fresh_final_repetition_at_bounds": 0.5, "fresh_final_repetition_held": 0.375, "best_step": 100,
+             "best_return_mean": -140.0, "fresh_best_return_mean": -150.0, "fresh_best_return_std": 2.0,
+             "fresh_best_repetition": 0.25, "fresh_best_repetition_at_bounds": 0.0, "fresh_best_repetition_held": 0.125}
+    # results.json of earlier versions: before the repetition held, and before both measures
+    before_held = {k: v for k, v in (row | fresh).items() if "held" not in k}
+    before_both = {k: v for k, v in before_held.items() if "at_bounds" not in k}
+    table = results_table([row | fresh, before_held, before_both]).splitlines()
+    assert "| 0.900 | 50.0% | 12.5% | 25.0% | 0.250 |" in table[2]
+    assert "| 0.900 | 50.0% | 12.5% | n/a | 0.250 |" in table[3] and "| 0.900 | 50.0% | n/a | n/a | 0.250 |" in table[4]
+    assert "| -160.0 ± 1.0 | 75.0% | 50.0% | 37.5% | 100 | -140.0 | -150.0 ± 2.0 | 25.0% | 0.0% | 12.5% |" in table[-3]
+    assert "| -160.0 ± 1.0 | 75.0% | 50.0% | n/a | 100 | -140.0 | -150.0 ± 2.0 | 25.0% | 0.0% | n/a |" in table[-2]
+    assert "| -160.0 ± 1.0 | 75.0% | n/a | n/a | 100 | -140.0 | -150.0 ± 2.0 | 25.0% | n/a | n/a |" in table[-1]
     del row["learn"], row["active"]  # (as a report reads a run's results)
+    finals = [{**row, **fresh, "repetition_at_bounds": at, "repetition_held": kept} for at, kept in ((0.125, 0.5),
+                                                                                                      (0.375, 0.25))]
     runs = [Run(Path(f"/r/td3-{seed}"), "Pendulum-v1", "pendulum/td3", seed, False, final, ((0, -150.0),))
-            for seed, final in enumerate([{**row, **fresh, "repetition_at_bounds": at} for at in (0.125, 0.375)])]
+            for seed, final in enumerate(finals)]
     text = write_report(group(runs), tmp_path)
-    assert "| Pendulum-v1 | 50.0% ± 0.0% | 25.0% ± 12.5% | 200.0 ± 0.0 |" in text.split("## Table 2")[1]
+    assert "| Pendulum-v1 | 50.0% ± 0.0% | 25.0% ± 12.5% | 37.5% ± 12.5% | 200.0 ± 0.0 |" in text.split("## Table 2")[1]
