@@ -336,14 +336,11 @@ def _finished(out: Path) -> int:
 def _eval(args: argparse.Namespace) -> int:
     from layered.group_state import group_dir
     from layered.run_evals import gallery, open_run, threshold_sweep
-    from layered.stack import has_threshold
 
     if group_dir(args.run_dir) == args.run_dir:
         return _eval_group(args)
     run = replace(open_run(args.run_dir, args.weights, args.plugin, unfinished=True), fresh=args.fresh)
-    if (args.threshold is not None or args.threshold_sweep) and not has_threshold(run.recipe, run.active):
-        print(f"layered: note: no layer of this stack ({', '.join(run.active)}) has a contribution that a threshold "
-              "holds back, so every threshold evaluates the same", file=sys.stderr)
+    _note_if_no_threshold(args, run)
     if args.gallery == "":
         args.gallery = run.active[-1]
     if args.gallery is not None and args.gallery not in run.active:
@@ -369,6 +366,15 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _note_if_no_threshold(args: argparse.Namespace, run: Any) -> None:
+    """Say so where thresholds are asked for and no layer of the run's stack has a contribution they hold back."""
+    from layered.stack import has_threshold
+
+    if (args.threshold is not None or args.threshold_sweep) and not has_threshold(run.recipe, run.active):
+        print(f"layered: note: no layer of this stack ({', '.join(run.active)}) has a contribution that a threshold "
+              "holds back, so every threshold evaluates the same", file=sys.stderr)
+
+
 def _eval_group(args: argparse.Namespace) -> int:
     """Every seed of the group in `args.run_dir` evaluated as the group evaluates them (`evaluate_group_runs`), each
     seed's row written to its own eval folder."""
@@ -380,6 +386,7 @@ def _eval_group(args: argparse.Namespace) -> int:
         return _fail(f"{', '.join(one_run)}: of one run; {args.run_dir} is a group: name one of its seeds "
                      f"({args.run_dir / 'seed<k>'})")
     runs = open_group(args.run_dir, args.weights, args.plugin, args.fresh)
+    _note_if_no_threshold(args, runs[0])
     episodes = args.episodes or (runs[0].recipe.eval.fresh_episodes if args.fresh else runs[0].recipe.eval.episodes)
     results = evaluate_group_runs(runs, episodes, args.threshold, progress=True)
     written = [_write_evaluation(args, run, episodes, result, "-group") for run, result in zip(runs, results,

@@ -54,10 +54,11 @@ def at_bounds(actions: np.ndarray, bounds: Bounds) -> np.ndarray:
 
 def held(decided: np.ndarray, acted: np.ndarray, reached: np.ndarray, acted_before: np.ndarray,
          reached_before: np.ndarray) -> np.ndarray:
-    """Whether the stack's rules repeated each step's action, whatever the networks output (arrays [..., layers], the
-    step's and, `_before`, the previous step's): every layer either had no part in either action (its part zero:
-    thresholded away, deferring, or kept out by a committed gate), or decided nothing anew and was reached by the
-    walk at both steps or at neither. Then every part is the one before, and so is their sum."""
+    """Whether the stack's rules repeated each step's action (arrays [..., layers], the step's and, `_before`, the
+    previous step's): every layer either had a part in neither action (its part zero: thresholded away, deferring,
+    or kept out by a committed gate), or decided nothing anew and was reached by the walk at both steps or at
+    neither. Then every part is the one before, and so is their sum: the outputs of layers that decided anew count
+    only through their parts being zero."""
     quiet = ~acted & ~acted_before
     kept = ~decided & (reached == reached_before)
     return np.all(quiet | kept, axis=-1)

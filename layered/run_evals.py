@@ -98,9 +98,15 @@ def open_group(directory: Path, weights: str | None = None, plugins: list[str] |
     """The seeds of the group in `directory`, each opened as `open_run` opens a run (an unfinished group as it stands
     at its last checkpoint), with `fresh` on their fresh episodes."""
     from layered.group_state import group_info, seed_dirs
+    from layered.rundir import RunDirError
 
-    return [replace(open_run(out, weights, plugins, unfinished=True), fresh=fresh)
+    runs = [replace(open_run(out, weights, plugins, unfinished=True), fresh=fresh)
             for out in seed_dirs(directory, group_info(directory).group)]
+    stacks = {run.path.name: "+".join(run.active) for run in runs}
+    if len(set(stacks.values())) > 1:
+        raise RunDirError(f"{directory}: its seeds stand at different stacks ({stacks}), while a group's seeds "
+                          "train the same phases together")
+    return runs
 
 
 def evaluate_group_runs(runs: list[TrainedRun], episodes: int, threshold: float | None = None,

@@ -74,7 +74,7 @@ def test_jerk_is_the_mean_absolute_change_over_steps_and_dimensions():
 
 
 def steps(actions, rewards, decided, acted):
-    """Steps where each layer in `acted` contributed 0.5 and the others, reached, contributed 0."""
+    """Steps where each layer in `acted` contributed 0.5 and the walk reached no other layer."""
     contributions = [{n: np.array([0.5]) for n in a} for a in acted]
     return [StepRecord(*row) for row in zip(actions, rewards, decided, contributions, strict=True)]
 
@@ -297,6 +297,7 @@ def test_a_single_layer_deciding_every_step_holds_nothing_though_its_actions_rep
     ([4, 2, 1], ["gate", "gate", "residual-clip"], None, {"learn_from_commits": [False, False, True]}),
     ([2, 1], "residual-clip", 0.3, {"max_repeat": [3, 1]}),
     ([4, 1], "residual-clip", None, {"delay": [1, 2]}),
+    ([4, 2, 1], ["residual-clip", "gate", "residual-clip"], 0.3, {"max_repeat": [2, 1, 1]}),
 ])
 def test_every_step_the_rules_held_repeats_its_action_exactly(periods, kinds, threshold, settings):
     """Random outputs, often zero or the layer's last again, over stacks with thresholds, gates, delays, a layer

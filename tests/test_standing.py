@@ -130,7 +130,12 @@ def test_a_group_seed_is_read_from_the_groups_checkpoint_and_nothing_there_is_to
     assert not same_weights(latest.learners["fast"], best["fast"])
     assert same_weights(latest.learners["slow"], load_checkpoint(out / "seed3/checkpoints/slow.best.pt", "slow"))
     assert main(["eval", str(out / "seed3"), "--episodes", "1", "--weights", "final"]) == 0
-    assert (out / "seed3/eval/unfinished/phase1-step-120/weights-final/threshold-recipe-episodes-1.json").exists()
+    alone = out / "seed3/eval/unfinished/phase1-step-120/weights-final/threshold-recipe-episodes-1.json"
+    # the group as it stands, evaluated as a group: each seed where it stands, seed 3 as it was evaluated alone
+    assert main(["eval", str(out), "--episodes", "1", "--weights", "final"]) == 0
+    together = json.loads(alone.with_name("threshold-recipe-episodes-1-group.json").read_text())
+    assert together["return_mean"] == pytest.approx(json.loads(alone.read_text())["return_mean"], rel=1e-5)
+    assert (out / "seed0/eval/unfinished/phase1-step-120/weights-final/threshold-recipe-episodes-1-group.json").exists()
     assert writing.read_bytes() == b"partial"
     assert sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file() and "eval" not in p.parts) == files
 
