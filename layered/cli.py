@@ -345,7 +345,7 @@ def _eval(args: argparse.Namespace) -> int:
         args.gallery = run.active[-1]
     if args.gallery is not None and args.gallery not in run.active:
         return _fail(f"--gallery: no layer {args.gallery!r} in this stack; layers: {', '.join(run.active)}")
-    episodes = args.episodes or (run.recipe.eval.fresh_episodes if args.fresh else run.recipe.eval.episodes)
+    episodes = args.episodes or run.episodes
     if args.threshold_sweep:
         _print_sweep(threshold_sweep(run, args.threshold_sweep, episodes), run)
     if args.threshold is not None or args.plot or not (args.threshold_sweep or args.video):
@@ -387,7 +387,7 @@ def _eval_group(args: argparse.Namespace) -> int:
                      f"({args.run_dir / 'seed<k>'})")
     runs = open_group(args.run_dir, args.weights, args.plugin, args.fresh)
     _note_if_no_threshold(args, runs[0])
-    episodes = args.episodes or (runs[0].recipe.eval.fresh_episodes if args.fresh else runs[0].recipe.eval.episodes)
+    episodes = args.episodes or runs[0].episodes
     results = evaluate_group_runs(runs, episodes, args.threshold, progress=True)
     written = [_write_evaluation(args, run, episodes, result, "-group") for run, result in zip(runs, results,
                                                                                               strict=True)]

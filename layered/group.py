@@ -37,7 +37,7 @@ from layered.envs import make_env, snapshot_env
 from layered.errors import Diverged
 from layered.events import EventLog
 from layered.evaluate import evaluation_seed
-from layered.group_eval import Stacks, all_rows, close_evaluator, evaluate_stacks, open_group_evaluator, open_stacks
+from layered.group_eval import Stacks, all_rows, close_evaluator, evaluate_seeds, open_group_evaluator, open_stacks
 from layered.group_state import (
     GROUP_CHECKPOINT,
     GroupCheckpoint,
@@ -543,8 +543,8 @@ class Group:
     def _evaluations(self, phase: Phase, evaluator: Stacks, episodes: int, fresh: bool = False) -> list[Evaluation]:
         """Each seed's evaluation of its present layers over `episodes` episodes seeded from its `evaluation_seed`
         (`fresh`: its fresh episodes'), as many side by side as the evaluator has lanes."""
-        return evaluate_stacks(evaluator, self.learners, lambda learner, obs: learner.greedy(obs), episodes,
-                               [evaluation_seed(seed.recipe, fresh) for seed in self.seeds])
+        return evaluate_seeds(evaluator, self.learners, episodes, [evaluation_seed(seed.recipe, fresh)
+                                                                  for seed in self.seeds])
 
     def _finish_phase(self, phase: Phase, results: list[PhaseResult]) -> list[dict[str, Any]]:
         """Each seed's phase end as the single loop's: its final and best weights saved, both evaluated on

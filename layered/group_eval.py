@@ -97,6 +97,13 @@ def evaluate_stacks(evaluator: Stacks, learners: Mapping[str, Any], greedy: Call
                               progress)
 
 
+def evaluate_seeds(evaluator: Stacks, learners: Mapping[str, Any], episodes: int, seeds: Sequence[int],
+                   progress: bool = False) -> list[Evaluation]:
+    """A group's evaluation of each seed's present layers over `episodes` episodes seeded from its seed in `seeds`,
+    each layer acting through its learner stacked over the seeds."""
+    return evaluate_stacks(evaluator, learners, lambda learner, obs: learner.greedy(obs), episodes, seeds, progress)
+
+
 def evaluate_run(evaluator: Stacks, learners: Mapping[str, Learner], episodes: int, seed: int,
                  progress: bool = False) -> Evaluation:
     """A single run's evaluation of its present layers over `episodes` episodes seeded from `seed`: what

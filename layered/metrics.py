@@ -222,8 +222,7 @@ class Evaluation:
             "return_mean": self.return_mean, "return_std": self.return_std, "return_min": self.return_min,
             "return_max": self.return_max, "repetition": self.repetition,
             "repetition_at_bounds": self.repetition_at_bounds, "repetition_held": self.repetition_held,
-            "jerk": self.jerk, "decisions": self.decisions,
-            "compute": self.compute, "episode_steps": self.steps,
+            "jerk": self.jerk, "decisions": self.decisions, "compute": self.compute, "episode_steps": self.steps,
         }
         for measure in self.PER_LAYER:
             out |= {f"{measure}_{n}": v for n, v in getattr(self, measure).items()}

@@ -42,6 +42,12 @@ class TrainedRun:
         return evaluation_seed(self.recipe, self.fresh)
 
     @property
+    def episodes(self) -> int:
+        """How many episodes an evaluation plays unless asked otherwise: the recipe's `eval.episodes`, or with `fresh`
+        its `eval.fresh_episodes`."""
+        return self.recipe.eval.fresh_episodes if self.fresh else self.recipe.eval.episodes
+
+    @property
     def eval_dir(self) -> Path:
         """`eval/`, or `eval/weights-<w>/` for weights asked for by name, so that `layered report` reads only
         evaluations of the weights the run hands on; an unfinished run's under `eval/unfinished/`; those on fresh
@@ -116,14 +122,13 @@ def evaluate_group_runs(runs: list[TrainedRun], episodes: int, threshold: float 
     numbers are those training wrote, in the last digit too (where an actor settles, exact repetition depends on
     how the products were summed: metrics.md)."""
     from layered.group import stack_learners
-    from layered.group_eval import close_evaluator, evaluate_stacks, open_group_evaluator
+    from layered.group_eval import close_evaluator, evaluate_seeds, open_group_evaluator
 
     first = runs[0]
     stacked = stack_learners([run.recipe for run in runs], [run.learners for run in runs])
     evaluator = open_group_evaluator(first.recipe, first.active, episodes, len(runs), threshold)
     try:
-        return evaluate_stacks(evaluator, stacked, lambda learner, obs: learner.greedy(obs), episodes,
-                               [run.seed for run in runs], progress)
+        return evaluate_seeds(evaluator, stacked, episodes, [run.seed for run in runs], progress)
     finally:
         close_evaluator(evaluator)
 
