@@ -83,7 +83,7 @@ class EnvFamily(ABC):
             raise ValueError(f"cannot restore a snapshot into {env_id}: {error}") from None
 
 
-FAMILIES: Registry[type[EnvFamily]] = Registry("environment family")
+FAMILIES: Registry[type[EnvFamily]] = Registry("environment family", EnvFamily)
 
 
 def split_id(env_id: str) -> tuple[str, str]:

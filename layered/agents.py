@@ -32,7 +32,7 @@ class Watcher(Protocol):
 
 
 class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
-    """A Gymnasium env driven by a layer stack, one agent per present layer."""
+    """A PettingZoo AEC environment over a Gymnasium one: the stack's rules drive it, one agent per present layer."""
 
     metadata: ClassVar[dict[str, Any]] = {
         "name": "layered_v0", "is_parallelizable": False, "render_modes": ["rgb_array"],

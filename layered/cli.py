@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 # Only light modules here, so that --help and usage errors answer at once: each command imports
 # what it needs (torch, the learners, the environments) when it runs.
@@ -24,6 +24,9 @@ from layered.interrupt import Stopped
 from layered.layer_process import Fault, LayerFault, Link
 from layered.plugins import load_plugins
 from layered.report import DEFAULT_SWEEP, plot_episode, results_table
+
+if TYPE_CHECKING:
+    from layered.rundir import RunInfo
 
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 1
@@ -304,7 +307,9 @@ def _resume(args: argparse.Namespace) -> int:
 
     if (directory := group_dir(args.run_dir)) is not None:
         return _resume_group(args, directory)
-    load_plugins(read_run_info(args.run_dir).plugins)
+    info = read_run_info(args.run_dir)
+    load_plugins(info.plugins)
+    _threads_as_trained(args, info)
     if (args.run_dir / "results.json").exists():
         print(f"{args.run_dir} has finished; nothing to resume", file=sys.stderr)
         return 0
@@ -319,12 +324,24 @@ def _resume_group(args: argparse.Namespace, directory: Path) -> int:
 
     info = group_info(directory)
     load_plugins(info.plugins)
+    _threads_as_trained(args, info)
     if all((out / "results.json").exists() for out in seed_dirs(directory, info.group)):
         print(f"the group in {directory} has finished; nothing to resume", file=sys.stderr)
         return 0
     print(f"resuming the group of seeds {list(info.group)} in {directory}", file=sys.stderr)
     return _group_finished(directory, info.group, resume_group(directory, max_steps=args.steps,
                                                                settings=args.settings))
+
+
+def _threads_as_trained(args: argparse.Namespace, info: RunInfo) -> None:
+    """Compute with the torch threads the run trained with where `--threads` does not say (at most this machine's
+    cores): the products of an evaluation sum in an order that depends on them, and so do its numbers' last digits."""
+    if args.threads is None and info.threads:
+        import torch
+
+        from layered.cores import usable_cores
+
+        torch.set_num_threads(min(info.threads, usable_cores()))
 
 
 def _finished(out: Path) -> int:
@@ -335,11 +352,13 @@ def _finished(out: Path) -> int:
 
 def _eval(args: argparse.Namespace) -> int:
     from layered.group_state import group_dir
+    from layered.rundir import read_run_info
     from layered.run_evals import gallery, open_run, threshold_sweep
 
     if group_dir(args.run_dir) == args.run_dir:
         return _eval_group(args)
     run = replace(open_run(args.run_dir, args.weights, args.plugin, unfinished=True), fresh=args.fresh)
+    _threads_as_trained(args, read_run_info(args.run_dir))
     _note_if_no_threshold(args, run)
     if args.gallery == "":
         args.gallery = run.active[-1]
@@ -361,8 +380,9 @@ def _eval(args: argparse.Namespace) -> int:
         for path, ret in videos:
             print(f"video: {path} (return {ret:.1f})")
     if args.gallery is not None:
-        png, acted, shown = gallery(run, args.gallery)
-        print(f"{args.gallery!r} acted at {acted} steps of the episode; the {shown} most different states: {png}")
+        png, acted, steps, shown = gallery(run, args.gallery, episodes, args.threshold)
+        print(f"{args.gallery!r} acted at {acted} of the {steps} steps of {episodes} episode{'s' * (episodes > 1)} "
+              f"({acted / max(steps, 1):.0%}); the {shown} most different states: {png}")
     return 0
 
 
@@ -378,6 +398,7 @@ def _note_if_no_threshold(args: argparse.Namespace, run: Any) -> None:
 def _eval_group(args: argparse.Namespace) -> int:
     """Every seed of the group in `args.run_dir` evaluated as the group evaluates them (`evaluate_group_runs`), each
     seed's row written to its own eval folder."""
+    from layered.group_state import group_info
     from layered.run_evals import evaluate_group_runs, open_group
 
     one_run = [flag for flag, given in (("--plot", args.plot), ("--threshold-sweep", args.threshold_sweep),
@@ -386,6 +407,7 @@ def _eval_group(args: argparse.Namespace) -> int:
         return _fail(f"{', '.join(one_run)}: of one run; {args.run_dir} is a group: name one of its seeds "
                      f"({args.run_dir / 'seed<k>'})")
     runs = open_group(args.run_dir, args.weights, args.plugin, args.fresh)
+    _threads_as_trained(args, group_info(args.run_dir))
     _note_if_no_threshold(args, runs[0])
     episodes = args.episodes or runs[0].episodes
     results = evaluate_group_runs(runs, episodes, args.threshold, progress=True)

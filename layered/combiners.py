@@ -74,7 +74,7 @@ class Combiner(ABC):
         return cls(None if threshold is None else np.asarray(threshold, np.float32), data["per_dimension"])
 
 
-COMBINERS: Registry[type[Combiner]] = Registry("combiner")
+COMBINERS: Registry[type[Combiner]] = Registry("combiner", Combiner)
 
 
 def clip(x: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ from layered.agents import make_aec_env
 from layered.deploy import Driver, Settings, Stop
 from layered.deploy_measures import largest_difference, layer_measures, run_measures
 from layered.envs import control_timestep, make_env
-from layered.evaluate import run_episode
+from layered.evaluate import episode_seeds, run_episode
 from layered.export import export_stack
 from layered.latency import TOLERANCE
 from layered.layer_process import LayerEnd, LayerFault, LayerProcess, Link
@@ -28,11 +28,12 @@ START_TIMEOUT_S = 120.0  # a layer's process imports torch and loads its policy
 
 
 def library_episodes(run: TrainedRun, episodes: int, threshold: float | None) -> list[tuple[float, np.ndarray]]:
-    """`layered eval`'s episodes from the deployment's seeds: each one's return and executed actions."""
+    """`layered eval`'s episodes (seeded `episode_seeds(run.seed, episodes)`), played one after another through the
+    agent view, as the deployed layers act: each one's return and executed actions."""
     env = make_aec_env(run.recipe, active=run.active, evaluation=True, threshold=threshold, keep_trace=True)
     played = []
-    for k in range(episodes):
-        measures = run_episode(env, run.learners, run.seed + k)
+    for seed in episode_seeds(run.seed, episodes):
+        measures = run_episode(env, run.learners, seed)
         played.append((measures.ret, np.asarray([r.action for r in env.trace], np.float32)))
     env.close()
     return played
@@ -95,8 +96,8 @@ def _deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: P
             driver = Driver(rules, processes, timestep, setting, notify)
             played = []
             try:
-                for k in range(episodes):
-                    played.append(driver.play(env, run.seed + k))
+                for seed in episode_seeds(run.seed, episodes):
+                    played.append(driver.play(env, seed))
             except Stop:
                 pass
             finally:

@@ -64,13 +64,14 @@ def distinct_states(points: Sequence[np.ndarray], count: int) -> list[int]:
     return sorted(chosen)
 
 
-Shot = tuple[int, np.ndarray, StepRecord]  # a base step, the state rendered before it, what was executed
+Shot = tuple[int, int, np.ndarray, StepRecord]  # an episode, its base step, the state rendered before it, what acted
 
 
 @dataclass
 class _Shots:
-    """A watcher that keeps the frames of chosen base steps with what was executed there."""
+    """A watcher that keeps the frames of chosen base steps of one episode with what was executed there."""
 
+    episode: int
     steps: set[int]
     taken: list[Shot] = field(default_factory=list)
 
@@ -78,20 +79,32 @@ class _Shots:
         return step in self.steps
 
     def __call__(self, step: int, frame: np.ndarray, record: StepRecord) -> None:
-        self.taken.append((step, frame, record))
+        self.taken.append((self.episode, step, frame, record))
 
 
-def states_where_layer_acts(
-    recipe: Recipe, learners: Mapping[str, Learner], active: list[str], layer: str, seed: int, count: int = 8
-) -> tuple[list[int], list[Shot]]:
-    """The steps of one evaluation episode at which `layer` changed the action, and rendered frames
-    of up to `count` of them whose observations differ most. The episode is played twice (it is
-    deterministic given the seed): once to find the states, once to render them."""
-    env = make_aec_env(recipe, active=active, evaluation=True, keep_trace=True, render_mode="rgb_array")
-    run_episode(env, learners, seed)
-    acting = [t for t, step in enumerate(env.trace) if layer in step.acted]
-    shots = _Shots({acting[k] for k in distinct_states([env.trace[t].obs for t in acting], count)})
-    env.watcher = shots
-    run_episode(env, learners, seed)
+def states_where_layer_acts(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], layer: str, seed: int,
+                            episodes: int, threshold: float | None = None, count: int = 8
+                            ) -> tuple[int, int, list[Shot]]:
+    """At how many of the base steps of `layered eval`'s `episodes` episodes (seeded `episode_seeds(seed, episodes)`)
+    `layer` changed the action, of how many, and rendered frames of up to `count` of those states whose observations
+    differ most. Each episode holding a chosen state is played again to render it (it is deterministic given its
+    seed)."""
+    env = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, keep_trace=True,
+                       render_mode="rgb_array")
+    seeds = episode_seeds(seed, episodes)
+    acting: list[tuple[int, int]] = []  # (episode, step)
+    observations, steps = [], 0
+    for episode, episode_seed in enumerate(seeds):
+        run_episode(env, learners, episode_seed)
+        steps += len(env.trace)
+        acted = [t for t, step in enumerate(env.trace) if layer in step.acted]
+        acting += [(episode, t) for t in acted]
+        observations += [env.trace[t].obs for t in acted]
+    chosen = [acting[k] for k in distinct_states(observations, count)]
+    taken: list[Shot] = []
+    for episode in sorted({episode for episode, _ in chosen}):
+        env.watcher = shots = _Shots(episode, {t for e, t in chosen if e == episode})
+        run_episode(env, learners, seeds[episode])
+        taken += shots.taken
     env.close()
-    return acting, shots.taken
+    return len(acting), steps, taken

@@ -175,7 +175,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
     if not resume:
         for recipe, learners in zip(recipes, singles, strict=True):
             start_from_weights(recipe, learners)
-    info = RunInfo(label, max_steps, tuple(plugins), tuple(numbers))
+    info = RunInfo(label, max_steps, tuple(plugins), tuple(numbers), threads=torch.get_num_threads())
     digests = [recipe_digest(resolved(recipe)) for recipe in recipes]
     with ExitStack() as locks:
         for out in outs:

@@ -23,7 +23,7 @@ import numpy as np
 
 from layered.agents import make_aec_env
 from layered.envs import make_env
-from layered.evaluate import run_episode
+from layered.evaluate import episode_seeds, run_episode
 from layered.metrics import StepRecord
 from layered.learners import Learner
 from layered.schema import Recipe
@@ -120,8 +120,8 @@ def _warm_up(stack: ExportedStack, env: gym.Env, seed: int) -> None:
 
 def compare(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], exported: Path, episodes: int,
             seed: int, threshold: float | None = None, min_steps: int = 0) -> Comparison:
-    """Play `episodes` episodes (seeds seed, seed + 1, ...), and more until `min_steps` base steps,
-    with the library; replay each one's observations through the stack exported to `exported` and
+    """Play `episodes` episodes (`layered eval`'s, seeded `episode_seeds(seed, ...)`), and more until `min_steps`
+    base steps, with the library; replay each one's observations through the stack exported to `exported` and
     compare the actions; play each closed loop with the exported stack too; time both per base step."""
     library = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, keep_trace=True)
     timer = _StepTimer(library.base)
@@ -135,13 +135,14 @@ def compare(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], 
     difference, steps, k = 0.0, 0, 0
     while k < episodes or steps < min_steps:
         timer.calls.clear()
-        library_returns.append(run_episode(library, learners, seed + k).ret)
+        episode_seed = episode_seeds(seed, k + 1)[k]  # (a longer draw begins with the shorter one)
+        library_returns.append(run_episode(library, learners, episode_seed).ret)
         library_seconds += [start - end for (_, end), (start, _) in zip(timer.calls, timer.calls[1:], strict=False)]
         actions, seconds = _replay(stack, library.trace)
         exported_seconds += seconds
         ours = np.asarray([r.action for r in library.trace], np.float64)
         difference = max(difference, float(np.max(np.abs(ours - actions), initial=0.0)))
-        exported_returns.append(_exported_episode(stack, env, seed + k))
+        exported_returns.append(_exported_episode(stack, env, episode_seed))
         steps += len(actions)
         k += 1
     library.close()

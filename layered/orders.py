@@ -22,7 +22,7 @@ class Phase:
 
 
 Order = Callable[[Sequence[str], Sequence[Any]], list[Phase]]
-ORDERS: Registry[Order] = Registry("training order")
+ORDERS: Registry[Order] = Registry("training order", arguments=2)
 MAKE_OWN_PHASES = frozenset({"slow-to-fast", "fast-to-slow", "joint"})
 """The built-in orders that make their own phases: a recipe's `train.phases` would be ignored."""
 

@@ -104,8 +104,17 @@ def _check_learners(recipe: Recipe) -> list[tuple[str, str]]:
     for i, layer in enumerate(recipe.layers):  # a layer's own table can only break a valid shared one
         if layer.learner and not shared:
             merged = _check_learner({**recipe.learner, **layer.learner})
-            problems += [(f"layers[{i}].learner{k}", m) for k, m in merged]
+            problems += [(f"layers[{i}].learner{k}", m + _shared_note(recipe, i, k)) for k, m in merged]
     return problems
+
+
+def _shared_note(recipe: Recipe, index: int, key: str) -> str:
+    """Where a problem of layer `index`'s learner setting `key` (".hidden") came from the shared [learner] table: so."""
+    name, top = recipe.layers[index].name, key.lstrip(".").split(".")[0]
+    if top not in recipe.learner or top in recipe.layers[index].learner:
+        return ""
+    return (f" (layer {name!r} takes it from [learner], which every layer takes: set it only for the layers whose "
+            f"learner has it, as layers.<name>.learner.{top})")
 
 
 def _check_training(recipe: Recipe) -> list[tuple[str, str]]:

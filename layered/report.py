@@ -513,19 +513,19 @@ def _content(frames: np.ndarray, margin: int = 10) -> tuple[slice, slice]:
     return (slice(max(ys[0] - margin, 0), ys[-1] + margin + 1), slice(max(xs[0] - margin, 0), xs[-1] + margin + 1))
 
 
-def save_gallery(shots: Sequence[tuple[int, Any, Any]], layer: str, out_png: Path, title: str) -> None:
-    """The rendered states in one row, each titled with its step, the layer's part of the action
-    and the executed action."""
+def save_gallery(shots: Sequence[tuple[int, int, Any, Any]], layer: str, out_png: Path, title: str) -> None:
+    """The rendered states in one row, each titled with its episode and step, the layer's part of the action and the
+    executed action."""
     plt = pyplot()
     fig, axes = plt.subplots(1, max(1, len(shots)), figsize=(2.2 * max(1, len(shots)), 3.2), squeeze=False,
                              layout="constrained")  # keeps the title clear of the frames' own titles
     for ax in axes[0]:
         ax.axis("off")
-    rows, cols = _content(np.asarray([frame for _, frame, _ in shots])) if shots else (slice(None), slice(None))
-    for ax, (step, frame, record) in zip(axes[0], shots, strict=False):
+    rows, cols = _content(np.asarray([frame for _, _, frame, _ in shots])) if shots else (slice(None), slice(None))
+    for ax, (episode, step, frame, record) in zip(axes[0], shots, strict=False):
         ax.imshow(frame[rows, cols])
-        ax.set_title(f"step {step}\n{layer}: {_signed(record.contributions[layer])}\naction: {_signed(record.action)}",
-                     fontsize="x-small")
+        ax.set_title(f"episode {episode}, step {step}\n{layer}: {_signed(record.contributions[layer])}\n"
+                     f"action: {_signed(record.action)}", fontsize="x-small")
     fig.suptitle(title if shots else f"{title}: the layer never acted", fontsize="medium")
     fig.savefig(out_png, dpi=100, bbox_inches="tight")
     plt.close(fig)

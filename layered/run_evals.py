@@ -166,16 +166,19 @@ def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | No
     return rows
 
 
-def gallery(run: TrainedRun, layer: str) -> tuple[Path, int, int]:
-    """Render the most different states where `layer` acts into eval/gallery-LAYER.png; the file,
-    the steps at which the layer acted and the number of states shown."""
+def gallery(run: TrainedRun, layer: str, episodes: int | None = None, threshold: float | None = None
+            ) -> tuple[Path, int, int, int]:
+    """Render the most different states where `layer` acts in `layered eval`'s episodes (default: the run's count)
+    into eval/gallery-LAYER.png; the file, the steps at which the layer acted, of how many, and the number of
+    states shown."""
     from layered.evaluate import states_where_layer_acts
     from layered.report import save_gallery
 
-    acting, shots = states_where_layer_acts(run.recipe, run.learners, run.active, layer, run.seed)
+    acted, steps, shots = states_where_layer_acts(run.recipe, run.learners, run.active, layer, run.seed,
+                                                  episodes or run.episodes, threshold)
     png = run.eval_dir / f"gallery-{layer}.png"
     save_gallery(shots, layer, png, f"{run.recipe.env.id}: states where layer {layer!r} acts")
-    return png, len(acting), len(shots)
+    return png, acted, steps, len(shots)
 
 
 def missing_figure_evals(run_dir: Path) -> list[str]:

@@ -41,6 +41,7 @@ class RunInfo:
     plugins: tuple[str, ...] = ()
     group: tuple[int, ...] = ()  # the seeds trained together in one process with this one (layered.group)
     changes: tuple[dict[str, Any], ...] = ()  # settings changed on resuming (`layered resume --set`), in order
+    threads: int | None = None  # the torch threads it computed with (an evaluation's last digits depend on them)
 
 
 def steps_option(max_steps: int | None) -> str:
@@ -157,7 +158,8 @@ def prepare_run_dir(run_dir: Path, recipe_text: str, info: RunInfo, resume: bool
     write_atomically(run_dir / "recipe.toml", recipe_text)
     write_atomically(run_dir / "run.json", json.dumps(
         {"label": info.label, "max_steps": info.max_steps, "plugins": list(info.plugins), "group": list(info.group)}
-        | ({"precision": dict(precision)} if precision else {}), indent=2))
+        | ({"threads": info.threads} if info.threads else {}) | ({"precision": dict(precision)} if precision else {}),
+        indent=2))
 
 
 def read_run_info(run_dir: Path) -> RunInfo:
@@ -168,7 +170,7 @@ def read_run_info(run_dir: Path) -> RunInfo:
     try:
         data = json.loads(path.read_text())
         return RunInfo(str(data["label"]), data["max_steps"], tuple(data["plugins"]), tuple(data.get("group", ())),
-                       tuple(data.get("changes", ())))
+                       tuple(data.get("changes", ())), data.get("threads"))
     except (ValueError, KeyError, TypeError) as e:
         raise RunDirError(f"{path} is damaged ({e.__class__.__name__}: {e})") from None
 

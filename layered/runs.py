@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import tomli_w
+import torch
 
 from layered.checkpoint import CheckpointError
 from layered.errors import Diverged
@@ -102,7 +103,7 @@ def train(
     unavailable = unavailable_settings(recipe)
     if unavailable:
         raise RecipeError("recipe", unavailable)
-    info = RunInfo(label or out.name, max_steps, tuple(plugins))
+    info = RunInfo(label or out.name, max_steps, tuple(plugins), threads=torch.get_num_threads())
     learners = build_learners(recipe)
     if not (resume and has_progress(out)):
         start_from_weights(recipe, learners)  # a bad `weights` file is refused before anything is written

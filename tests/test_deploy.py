@@ -21,7 +21,7 @@ from layered.deploy import Decision, Driver, Episode, Settings
 from layered.deploy_measures import largest_difference, layer_measures, run_measures
 from layered.deploy_run import deploy, start_layers
 from layered.envs import make_env
-from layered.evaluate import run_episode
+from layered.evaluate import evaluate, run_episode
 from layered.combiners import ResidualClip
 from layered.layer_process import Fault, LayerFault, LayerProcess, Link, Reply, Request
 from layered.learner_set import build_learners
@@ -143,6 +143,9 @@ def test_lockstep_executes_the_actions_of_layered_eval(name, tmp_path):
     assert row["steps"] >= 15  # untrained, the double pendulum falls within about 8 steps per episode
     assert row["max_action_difference"] == 0.0 and row["same_actions_as_eval"]
     assert row["returns"] == row["eval_returns"]
+    env = make_aec_env(run.recipe, active=run.active, evaluation=True, keep_trace=True)
+    assert row["return_mean"] == pytest.approx(evaluate(env, run.learners, 2, run.seed).return_mean, rel=1e-12)
+    env.close()
     assert all(layer["missed"] == 0 and layer["requests"] == layer["answered"] for layer in row["layers"].values())
     delays = {name: layer["scheduled_delay"] for name, layer in row["layers"].items()}
     assert all(set(layer["delay_seen"]) <= {str(delays[name])} for name, layer in row["layers"].items())

@@ -7,7 +7,7 @@ import pytest
 
 from layered.plugins import load_plugins
 from layered.agents import make_aec_env
-from layered.evaluate import evaluate
+from layered.evaluate import episode_seeds, evaluate, run_episode, states_where_layer_acts
 from layered.group_eval import evaluate_run, open_run_evaluator, stacks_over
 from layered.learner_set import build_learners
 from layered.recipe import load_recipe
@@ -86,3 +86,18 @@ def test_an_actor_held_at_its_limit_repeats_at_the_action_bounds_and_a_constant_
     for measured in (one_by_one, side_by_side):  # Pendulum-v1's 200 steps, each after the first a repeat
         assert (measured.steps, measured.repetition) == (200, 199 / 200)
         assert measured.repetition_at_bounds == at_bounds
+
+
+@pytest.mark.parametrize("threshold", [None, 0.0, 1.0])
+def test_a_gallery_draws_from_layered_evals_episodes_at_its_threshold(threshold):
+    r = load_recipe(ROOT / "recipes/pendulum/tla-c.toml", SMALL)
+    learners = build_learners(r)
+    active = list(phases_of(r)[-1].active)
+    env = make_aec_env(r, active=active, evaluation=True, threshold=threshold, keep_trace=True)
+    played = [run_episode(env, learners, seed) for seed in episode_seeds(11, 3)]
+    env.close()
+    acted, steps, shots = states_where_layer_acts(r, learners, active, "fast", 11, 3, threshold, count=4)
+    assert steps == 3 * 200 and acted == sum(measures.acted["fast"] for measures in played)
+    assert len(shots) == min(4, acted) and len({(episode, step) for episode, step, _, _ in shots}) == len(shots)
+    for episode, step, frame, record in shots:
+        assert "fast" in record.acted and frame.ndim == 3 and 0 <= episode < 3 and 0 <= step < 200

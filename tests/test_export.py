@@ -146,3 +146,6 @@ def test_export_command_on_a_trained_run(tmp_path, tiny, capsys):
     assert check["steps"] == 200 and check["exported"]["median_us"] > 0 and check["matches"]
     assert check["exported_return"] == check["library_return"]
     assert np.isfinite(check["library"]["p99_us"])
+    assert main(["eval", str(run), "--episodes", "1"]) == 0  # the same episode, its products batched as an eval's
+    evaluated = json.loads((run / "eval" / "threshold-recipe-episodes-1.json").read_text())
+    assert check["library_return"] == pytest.approx(evaluated["return_mean"], rel=1e-5)

@@ -60,3 +60,27 @@ def test_the_deadband_combiner_drops_small_corrections_in_training_too():
     low, high = np.array([-2.0]), np.array([2.0])
     assert combiner.admit(np.array([1.0]), np.array([0.09]), low, high) == 0.0  # below 0.05 x 2
     assert combiner.admit(np.array([1.0]), np.array([0.11]), low, high) == pytest.approx(0.11)
+
+
+def test_a_plugin_whose_entry_cannot_work_is_refused_in_one_line_before_anything_is_written(tmp_path):
+    plugin = tmp_path / "narrow.py"
+    plugin.write_text("from layered.combiners import COMBINERS, ResidualClip\n\n\n"
+                      "@COMBINERS.register('narrow')\nclass Narrow(ResidualClip):\n"
+                      "    def admit(self, contribution):\n        return contribution\n")
+    proc = layered_here("train", EXAMPLES / "pendulum-deadband.toml", "--plugin", plugin, "combine.kind=narrow",
+                        "--out", tmp_path / "run")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert "its admit(self, contribution) does not take what the library passes" in proc.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_shared_learner_setting_one_layers_learner_lacks_is_refused_saying_where_it_came_from(tmp_path):
+    proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", EXAMPLES / "centre.py",
+                        "learner.hidden=[16, 16]", "--out", tmp_path / "run")
+    assert proc.returncode == 2 and not (tmp_path / "run").exists()
+    assert "layers[0].learner.hidden: unknown key (layer 'slow' takes it from [learner]" in proc.stderr
+    assert "layers.<name>.learner.hidden" in proc.stderr
+    proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", EXAMPLES / "centre.py",
+                        "layers.slow.learner.hidden=[16, 16]", "--out", tmp_path / "run")
+    assert proc.returncode == 2 and "layers[0].learner.hidden: unknown key" in proc.stderr
+    assert "[learner]" not in proc.stderr  # the layer's own table said it

@@ -2,6 +2,7 @@
 training order and environment family saves, loads, resumes and repeats itself exactly."""
 
 import io
+import re
 
 import numpy as np
 import pytest
@@ -152,3 +153,54 @@ def test_env_family_same_seed_same_trajectory_and_exact_resume(family, tmp_path,
     recipe = load_recipe(stack_recipe([2, 1], env=env_id).model_dump(),
                          [*SMALL, f"eval.every={length}", "eval.fresh_episodes=1"])
     stopped_and_resumed_equals_whole(recipe, tmp_path, monkeypatch, steps=length + 50, stop_after=1)
+
+
+# --- entries that cannot work are refused when registered ----------------------------------------------------------
+
+
+def _bad_entries():
+    """Per registry, entries that cannot work and the words of their refusal."""
+    from layered.envs import EnvFamily
+    from layered.combiners import ResidualClip
+
+    class NoRoute(COMBINERS.base):  # its abstract method left out
+        pass
+
+    class NarrowAdmit(ResidualClip):
+        def admit(self, contribution):
+            return contribution
+
+    bare = type("Bare", (LEARNERS.base,), {name: (lambda self, *a: None) for name in
+                                          ("act", "act_macs", "observe", "update", "state_dict", "load_state_dict")})
+
+    class NoInfo(EnvFamily):
+        example = "x:y"
+
+        def make(self, name, render_mode=None):
+            return None
+
+    class NarrowMake(FAMILIES.get("gym")):
+        def make(self, name):
+            return None
+
+    return [
+        (COMBINERS, "x-object", object, TypeError, "not a subclass of Combiner"),
+        (COMBINERS, "x-no-route", NoRoute, TypeError, "does not define route"),
+        (COMBINERS, "x-narrow", NarrowAdmit, TypeError, "its admit(self, contribution) does not take"),
+        (COMBINERS, "", ResidualClip, ValueError, "a name is letters"),
+        (LEARNERS, "x-bare", bare, TypeError, "does not set Config"),
+        (ORDERS, "x-one", lambda names: [], TypeError, "called with 2 positional arguments"),
+        (ORDERS, "x-number", 42, TypeError, "not callable"),
+        (FAMILIES, "x-no-info", NoInfo, TypeError, "does not define info"),
+        (FAMILIES, "x-narrow", NarrowMake, TypeError, "its make(self, name) does not take"),
+        (FAMILIES, "a:b", NoInfo, ValueError, "a name is letters"),
+    ]
+
+
+@pytest.mark.parametrize("case", range(10))
+def test_an_entry_that_cannot_work_is_refused_when_registered_and_leaves_the_registry_as_it_was(case):
+    registry, name, entry, error, words = _bad_entries()[case]
+    before = registry.names()
+    with pytest.raises(error, match=re.escape(words)):
+        registry.register(name)(entry)
+    assert registry.names() == before

@@ -361,3 +361,22 @@ def test_a_signal_while_a_phase_ends_says_what_follows(seeds, phase, tmp_path, m
     else:
         assert code == 0 and "SIGINT: no step is left: finishing the last evaluations and writing the results" in err
         assert "to save a checkpoint" not in err and results.exists()
+
+
+@pytest.mark.parametrize("seeds", [[], ["--seeds", "0,1"]], ids=["single", "group"])
+def test_resume_and_eval_compute_with_the_threads_the_run_trained_with(seeds, tmp_path):
+    """An evaluation's products sum in an order that depends on torch's threads, and so do its numbers' last digits:
+    without --threads, resuming and evaluating take those the run trained with (run.json); --threads still rules."""
+    import torch
+
+    out, before = tmp_path / "run", torch.get_num_threads()
+    try:
+        assert main(["train", str(PENDULUM / "td3.toml"), *seeds, "--steps", "200", *TINY, "--threads", "1",
+                     "--out", str(out)]) == 0
+        assert read_run_info(out / "seed0" if seeds else out).threads == 1
+        for command in (["resume", str(out)], ["eval", str(out), "--episodes", "1"]):
+            torch.set_num_threads(2)
+            assert main(command) == 0 and torch.get_num_threads() == 1
+            assert main([*command, "--threads", "2"]) == 0 and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -138,4 +138,4 @@ class Learner(ABC):
         self.rng.bit_generator.state = state["rng"]
 
 
-LEARNERS: Registry[type[Learner]] = Registry("learner")
+LEARNERS: Registry[type[Learner]] = Registry("learner", Learner)
