@@ -251,6 +251,8 @@ def _train(args: argparse.Namespace) -> int:
     from layered.rundir import check_new_run_dir, clear_run_dir
     from layered.runs import train
 
+    if (args.seed is not None or args.seeds is not None) and (given := _seed_override(args.overrides)):
+        return _fail(f"give the seed once: {'--seed' if args.seed is not None else '--seeds'} or {given}, not both")
     overrides = list(args.overrides) + ([f"train.seed={args.seed}"] if args.seed is not None else [])
     overrides += ["log.tensorboard=true"] if args.tensorboard else []
     overrides += [f"learner.device={args.device}"] if args.device else []
@@ -265,8 +267,21 @@ def _train(args: argparse.Namespace) -> int:
         clear_run_dir(out)
     check_new_run_dir(out)
     print(f"training {args.recipe} -> {out}", file=sys.stderr)
-    train(recipe, out, max_steps=args.steps, label=f"{source.parent.name}/{source.stem}", plugins=plugins)
+    train(recipe, out, max_steps=args.steps, label=_label(source), plugins=plugins)
     return _finished(out)
+
+
+def _seed_override(overrides: Sequence[str]) -> str | None:
+    """The override among `overrides` that sets train.seed, if any."""
+    return next((o for o in overrides if o.partition("=")[0].strip() == "train.seed"), None)
+
+
+def _label(source: Path) -> str:
+    """A run's label (its setup in reports): `<folder>/<name>` of its recipe file, as a sweep labels it."""
+    from layered.sweep import recipe_labels
+
+    path = source.resolve()
+    return recipe_labels([path])[path]
 
 
 def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[str]) -> int:
@@ -289,7 +304,7 @@ def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[s
     if args.force:
         clear_group(out)
     print(f"training {args.recipe}, seeds {args.seeds} as one group -> {out}", file=sys.stderr)
-    results = train_group(recipes, outs, f"{source.parent.name}/{source.stem}", args.steps, plugins=plugins)
+    results = train_group(recipes, outs, _label(source), args.steps, plugins=plugins)
     return _group_finished(out, args.seeds, results)
 
 
@@ -580,6 +595,8 @@ def _report(args: argparse.Namespace) -> int:
     from layered.report import write_report
     from layered.summary import find_runs, group
 
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        return _fail(f"{args.out}: is a file, not a directory")  # (before any evaluation it would follow)
     try:
         runs = find_runs(args.runs, args.unfinished)
     except FileNotFoundError as e:
@@ -603,6 +620,8 @@ def _sweep(args: argparse.Namespace) -> int:
     from layered.sweep import on_gpu, plan, process_count, run_local, run_ray
 
     overrides = [a for a in args.recipes if "=" in a] + args.overrides
+    if given := _seed_override(overrides):
+        return _fail(f"{given}: a sweep gives each run its seed (--seeds N: seeds 0..N-1)")
     overrides += [f"learner.device={args.device}"] if args.device else []
     recipes = [a for a in args.recipes if "=" not in a]
     plugins = load_plugins(args.plugin)
@@ -694,6 +713,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"\nlayered: stopped at once; {_how_to_continue(args)}", file=sys.stderr)
         return EXIT_SIGNAL["SIGINT"]
     except OSError as e:  # e.g. an --out that cannot be created
+        if isinstance(e, (FileExistsError, NotADirectoryError)) and e.filename and Path(e.filename).is_file():
+            return _fail(f"{e.filename}: is a file, not a directory")
         return _fail(f"{e.filename or ''}: {e.strerror or e}")
 
 

@@ -74,8 +74,8 @@ from layered.runs import (
     changed_recipe,
     misfit,
     record,
+    training_warnings,
     unavailable_settings,
-    warmup_warnings,
     way_on,
 )
 from layered.runstate import LoopState, recipe_digest
@@ -168,7 +168,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
         raise ValueError(f"a group's run directories are its directory's seed<k> folders, not {list(outs)[:2]}...")
     if not resume:
         check_new_group(directory, outs)  # before anything is built or written
-    for warning in warmup_warnings(recipes[0], max_steps):
+    for warning in training_warnings(recipes[0], max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
     keep_freed_memory()  # a group's update frees and takes back blocks of MBs every step (layered.heap)
     singles = [build_learners(recipe) for recipe in recipes]

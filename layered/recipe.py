@@ -126,6 +126,8 @@ def read_recipe_file(path: Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]
     base_path = (path.parent / base).resolve()
     if base_path in _seen:
         raise RecipeError(str(path), [("extends", f"{base} extends itself through {', '.join(map(str, _seen))}")])
+    if not base_path.exists():
+        raise RecipeError(str(path), [("extends", f"no such recipe file: {base_path}")])
     return _merge(read_recipe_file(base_path, (*_seen, path.resolve())), data)
 
 

@@ -89,12 +89,12 @@ def _unfit_class(entry: Any, base: type) -> str | None:
     if not (isinstance(entry, type) and issubclass(entry, base)):
         return f"{entry!r} is not a subclass of {base.__name__}"
     if inspect.isabstract(entry):
-        missing = ", ".join(sorted(getattr(entry, "__abstractmethods__", ())))
-        return f"it does not define {missing}, which every {base.__name__} must"
+        undefined = ", ".join(sorted(getattr(entry, "__abstractmethods__", ())))
+        return f"it does not define {undefined}, which every {base.__name__} must"
     declared = [name for klass in base.__mro__ for name, annotation in vars(klass).get("__annotations__", {}).items()
                 if CLASS_VARIABLE.match(str(annotation)) and not hasattr(base, name)]
-    if missing := [name for name in declared if not hasattr(entry, name)]:
-        return f"it does not set {', '.join(missing)}, which every {base.__name__} declares"
+    if unset := [name for name in declared if not hasattr(entry, name)]:
+        return f"it does not set {', '.join(unset)}, which every {base.__name__} declares"
     for klass in base.__mro__[:-1]:  # (object's own methods aside)
         for name, theirs in vars(klass).items():
             if name.startswith("_") and name != "__init__":

@@ -165,6 +165,8 @@ def prepare_run_dir(run_dir: Path, recipe_text: str, info: RunInfo, resume: bool
 def read_run_info(run_dir: Path) -> RunInfo:
     """How the run in `run_dir` was started."""
     path = run_dir / "run.json"
+    if not run_dir.exists():
+        raise RunDirError(f"{run_dir}: no such directory")
     if not (run_dir / "recipe.toml").is_file() or not path.is_file():
         raise RunDirError(f"{run_dir} is not a run directory (no recipe.toml and run.json){_not_a_run_hint(run_dir)}")
     try:

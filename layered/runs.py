@@ -15,6 +15,7 @@ import tomli_w
 import torch
 
 from layered.checkpoint import CheckpointError
+from layered.combiners import COMBINERS
 from layered.errors import Diverged
 from layered.events import EventLog
 from layered.events import available as events_available
@@ -58,6 +59,30 @@ def unavailable_settings(recipe: Recipe) -> list[tuple[str, str]]:
     return out
 
 
+def training_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
+    """What in the recipe trains a layer in vain: a phase too short for its warm-up, a gate that never learns."""
+    return warmup_warnings(recipe, max_steps) + untrained_gates(recipe)
+
+
+def untrained_gates(recipe: Recipe) -> list[str]:
+    """Gates that route the layers below them but never learn to: a gate layer's gate output is used only where a
+    layer below it is present (the fastest present layer's output just joins the sum), so one trained only alone
+    routes the layers below it by its initial weights."""
+    names, phases, out = recipe.layer_names(), phases_of(recipe), []
+    for i, name in enumerate(names):
+        kind = recipe.combiner_kind(i)
+        if kind is None or not COMBINERS.get(kind).gate_dims:
+            continue
+        below = set(names[i + 1:])
+        routing = [p for p, phase in enumerate(phases) if name in phase.active and below & set(phase.active)]
+        if routing and not any(name in phases[p].learn for p in routing):
+            out.append(f"layer {name!r} gates the layers below it ({kind!r}) from phase {routing[0]} on, but learns "
+                       "in no phase where one of them is present: its gate output, unused while it learns alone, "
+                       "routes them by its initial weights (train it over a layer below: order \"fast-to-slow\", "
+                       "\"joint\" or explicit phases)")
+    return out
+
+
 def warmup_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
     """Phases too short for a learning layer to finish its random warm-up, so that it never learns."""
     out = []
@@ -98,11 +123,11 @@ def train(
     after a final checkpoint.
     """
     out = Path(out_dir)
-    for warning in warmup_warnings(recipe, max_steps):
-        print(f"layered: warning: {warning}", file=sys.stderr)
     unavailable = unavailable_settings(recipe)
     if unavailable:
         raise RecipeError("recipe", unavailable)
+    for warning in training_warnings(recipe, max_steps):
+        print(f"layered: warning: {warning}", file=sys.stderr)
     info = RunInfo(label or out.name, max_steps, tuple(plugins), threads=torch.get_num_threads())
     learners = build_learners(recipe)
     if not (resume and has_progress(out)):

@@ -19,6 +19,7 @@ def files(tmp_path: Path) -> dict[str, str]:
     (tmp_path / "folder.toml").mkdir()
     (tmp_path / "cartpole.toml").write_text('[env]\nid = "CartPole-v1"\n[[layers]]\nname = "a"\nperiod = 1\n')
     (tmp_path / "a-file").write_text("not a directory")
+    (tmp_path / "extends-nothing.toml").write_text('extends = "nope.toml"\n')
     for seed in (10, 2, 0):  # a group's directory: the runs of its seeds (their run.json empty)
         (tmp_path / "group" / f"seed{seed}").mkdir(parents=True)
         for name in ("recipe.toml", "run.json"):
@@ -34,6 +35,8 @@ CASES = {
     "recipe not UTF-8": (["train", "{tmp}/latin1.toml"], "not UTF-8 text"),
     "recipe is a directory": (["train", "{tmp}/folder.toml"], "is a directory, not a recipe file"),
     "missing recipe": (["train", "{tmp}/nope.toml"], "no such recipe file"),
+    "extending a missing recipe": (["train", "{tmp}/extends-nothing.toml"],
+                                   "extends-nothing.toml: extends: no such recipe file: "),
     "discrete action space": (["train", "{tmp}/cartpole.toml"], "action space is Discrete"),
     "gate learner without a gate": (["train", str(TLA_C), "layers.slow.learner.kind=td3-gate"],
                                     "learner 'td3-gate' cannot drive layer 'slow'"),
@@ -56,6 +59,11 @@ CASES = {
     "zero threads": (["train", str(TLA_C), "--threads", "0"], "--threads: must be positive"),
     "negative seed": (["train", str(TLA_C), "--seed", "-1"], "train.seed"),
     "unknown key": (["train", str(TLA_C), "train.warmpu=5"], "train.warmpu: unknown key"),
+    "a seed twice": (["train", str(TLA_C), "--seed", "3", "train.seed=4"],
+                     "give the seed once: --seed or train.seed=4"),
+    "a group's seeds and a seed": (["train", str(TLA_C), "--seeds", "2", "train.seed=4"],
+                                   "give the seed once: --seeds or train.seed=4"),
+    "a sweep's seed": (["sweep", str(TLA_C), "train.seed=5", "--seeds", "1"], "a sweep gives each run its seed"),
     "empty hidden layer": (["train", str(TLA_C), "learner.hidden=[0, 8]"], "learner.hidden[0]"),
     "negative env threads": (["train", str(TLA_C), "env.threads=-1"], "give a number of threads, 0 or more"),
     "env workers as a word": (["train", str(TLA_C), 'env.workers="many"'], "give a number of processes, 0 or more"),
@@ -67,6 +75,9 @@ CASES = {
     "eval a group of damaged runs": (["eval", "{tmp}/group"], "seed0/run.json is damaged"),
     "export a group's directory": (["export", "{tmp}/group"], "group/seed0)"),
     "eval a non-run": (["eval", "{tmp}"], "is not a run directory"),
+    "eval a missing directory": (["eval", "{tmp}/nope"], "nope: no such directory"),
+    "report into a file": (["report", "{tmp}/sweep", "--no-extra-evals", "--out", "{tmp}/a-file"],
+                           "a-file: is a file, not a directory"),
     "eval zero episodes": (["eval", "{tmp}", "--episodes", "0"], "--episodes: must be positive"),
     "sweep zero seeds": (["sweep", str(TLA_C), "--seeds", "0"], "--seeds: must be positive"),
     "a descending range of seeds": (["train", str(TLA_C), "--seeds", "5-3"],

@@ -6,9 +6,11 @@ import pytest
 
 from layered.orders import ORDERS, Phase, stack_weights
 from layered.recipe import load_recipe
+from layered.runs import untrained_gates
 from layered.schema import PhaseConfig
 
 NAMES = ["slow", "mid", "fast"]
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_slow_to_fast_trains_each_layer_on_top_of_the_frozen_slower_ones():
@@ -58,3 +60,20 @@ def test_the_stack_of_a_run_is_its_last_phases_weights_over_what_earlier_phases_
                                                                                           expected):
     recipe = load_recipe(PENDULUM / name, [f"train.select={select}"])
     assert stack_weights(recipe, weights) == expected
+
+
+@pytest.mark.parametrize("recipe, overrides, warned", [
+    ("pendulum/tla-o.toml", [], False),  # fast-to-slow: the gate learns over the trained fast layer
+    ("pendulum/tla-joint.toml", [], False),  # both learn at once
+    ("research/pendulum-gate-over-residual-3.toml", [], False),  # the gate learns last, over the others
+    ("pendulum/tla-o.toml", ["train.order=slow-to-fast"], True),  # the gate learns alone, then routes the fast layer
+    ("pendulum/tla-o.toml", ["train.order=explicit", 'train.phases=[{learn=["slow"], active=["slow"]}, '
+                             '{learn=["fast"]}, {learn=["slow"]}]'], False),  # ... and again over it
+    ("pendulum/tla-c.toml", [], False),  # no gate
+])
+def test_a_gate_that_never_learns_over_a_layer_below_it_is_named(recipe, overrides, warned):
+    warnings = untrained_gates(load_recipe(ROOT / "recipes" / recipe, overrides))
+    assert warnings == (["layer 'slow' gates the layers below it ('gate') from phase 1 on, but learns in no phase "
+                         "where one of them is present: its gate output, unused while it learns alone, routes them "
+                         "by its initial weights (train it over a layer below: order \"fast-to-slow\", \"joint\" or "
+                         "explicit phases)"] if warned else [])

@@ -263,3 +263,11 @@ def test_a_layer_makes_its_updates_after_each_decision_once_it_learns(tmp_path):
     decisions = state.decisions["slow"]
     assert decisions == state_three.decisions["slow"] == 68  # 2 x ceil(200 / 6): the period's own schedule
     assert one["slow"].td3.updates == decisions - 10 and three["slow"].td3.updates == 3 * (decisions - 10)
+
+
+def test_a_recipe_named_by_its_bare_file_name_is_labelled_by_its_folder_as_a_sweep_labels_it(tmp_path, tiny,
+                                                                                            monkeypatch):
+    (tmp_path / "mine.toml").write_text((Path(__file__).parent.parent / "recipes/pendulum/td3.toml").read_text())
+    monkeypatch.chdir(tmp_path)
+    assert layered_here("train", "mine.toml", "--steps", 60, *tiny, "--out", "run").returncode == 0
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["label"] == f"{tmp_path.name}/mine"
