@@ -481,14 +481,15 @@ def _plot_last_episode(args: argparse.Namespace, run: Any, episodes: int, png: P
 
 def _print_sweep(rows: list[dict[str, Any]], run: Any) -> None:
     from layered.report import plot_threshold_sweep
+    from layered.run_evals import sweep_file
 
-    out_dir = run.eval_dir
-    plot_threshold_sweep(rows, out_dir / "threshold-sweep.png", f"{run.recipe.env.id}: threshold sweep")
+    written = run.eval_dir / sweep_file([r["threshold"] for r in rows])
+    plot_threshold_sweep(rows, written.with_suffix(".png"), f"{run.recipe.env.id}: threshold sweep")
     print("| threshold | return | action repetition | decisions |\n|---|---|---|---|")
     for r in rows:
         print(f"| {r['threshold']:g} | {r['return_mean']:.1f} ± {r['return_std']:.1f} | {r['repetition']:.1%} "
               f"| {r['decisions']:.1f} |")
-    print(f"written to {out_dir / 'threshold-sweep.csv'} and threshold-sweep.png")
+    print(f"written to {written} and {written.with_suffix('.png').name}")
 
 
 def _export(args: argparse.Namespace) -> int:

@@ -17,6 +17,8 @@ from layered.compare import (ACROSS_COLUMNS, COLUMNS, RESAMPLES, across_csv_row,
 from layered.progress import count
 
 DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]  # the thresholds of the paper's Fig. 2
+SWEEP_FILE = "threshold-sweep.csv"
+"""A run's threshold sweep on `DEFAULT_SWEEP`, in its eval/ folder: the one Fig. 2 is drawn from."""
 LEGEND_WIDTH = 44
 """Characters per line of a setup's name in a figure's legend, which wraps longer names (settings, paths) so that
 the legend stays within its plot."""
@@ -358,7 +360,7 @@ def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str
     first gallery of states where a layer acts (`layered eval --gallery`)."""
     parts: list[str] = []
     for s in setups:
-        sweeps = [p for r in s.runs if (p := r.path / "eval" / "threshold-sweep.csv").exists()]
+        sweeps = [p for r in s.runs if (p := r.path / "eval" / SWEEP_FILE).exists()]
         if sweeps:
             per_run = []
             for path in sweeps:

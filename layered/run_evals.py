@@ -15,11 +15,23 @@ from layered.learners import Learner
 from layered.metrics import Evaluation
 from layered.plugins import load_plugins
 from layered.recipe import Recipe, load_recipe
-from layered.report import DEFAULT_SWEEP
+from layered.report import DEFAULT_SWEEP, SWEEP_FILE
 from layered.stack import has_threshold
 from layered.standing import Standing, standing
 
-SWEEP_FILE = "threshold-sweep.csv"
+
+def sweep_file(thresholds: list[float]) -> str:
+    """Where a threshold sweep is kept in a run's eval/ folder: `SWEEP_FILE` for the default grid, and a name of its
+    own for any other (`threshold-sweep-0-0.3.csv`), so that a sweep of a few thresholds never stands in for it."""
+    if thresholds == DEFAULT_SWEEP:
+        return SWEEP_FILE
+    return "threshold-sweep-" + "-".join(f"{t:g}" for t in thresholds) + ".csv"
+
+
+def kept_thresholds(path: Path) -> list[float]:
+    """The thresholds of the sweep kept in `path`, in its order."""
+    with path.open(newline="") as f:
+        return [float(row["threshold"]) for row in csv.DictReader(f)]
 
 
 @dataclass(frozen=True)
@@ -145,7 +157,7 @@ def _latest_weights(recipe: Recipe, at: Standing) -> dict[str, dict[str, Any]]:
 
 def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None) -> list[dict[str, Any]]:
     """One evaluation per threshold (a fraction of the maximum action), its episodes side by side: the paper's
-    return and action frequency against the threshold (Fig. 2). Writes eval/threshold-sweep.csv; its rows."""
+    return and action frequency against the threshold (Fig. 2). Writes eval/`sweep_file(thresholds)`; its rows."""
     from tqdm import tqdm
 
     from layered.group_eval import evaluate_run, open_run_envs, stacks_over
@@ -159,7 +171,7 @@ def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | No
             rows.append({"threshold": threshold, **evaluate_run(at, run.learners, episodes, run.seed).row()})
     finally:
         envs.close()
-    with (run.eval_dir / SWEEP_FILE).open("w", newline="") as f:
+    with (run.eval_dir / sweep_file(thresholds)).open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
@@ -188,7 +200,9 @@ def missing_figure_evals(run_dir: Path) -> list[str]:
 
     recipe = load_recipe(run_dir / "recipe.toml")
     missing = []
-    if has_threshold(recipe, phases_of(recipe)[-1].active) and not (run_dir / "eval" / SWEEP_FILE).exists():
+    kept = run_dir / "eval" / SWEEP_FILE
+    if has_threshold(recipe, phases_of(recipe)[-1].active) and not (kept.exists() and
+                                                                    kept_thresholds(kept) == DEFAULT_SWEEP):
         missing.append("threshold sweep")
     if len(recipe.layers) > 1 and not (run_dir / "eval" / f"gallery-{recipe.layers[-1].name}.png").exists():
         missing.append("gallery")
@@ -199,6 +213,12 @@ def run_figure_evals(run_dir: Path, missing: list[str]) -> None:
     """Run the evaluations `missing_figure_evals` named for this run."""
     run = open_run(run_dir)
     if "threshold sweep" in missing:
+        kept = run.eval_dir / SWEEP_FILE
+        if kept.exists():  # other thresholds, kept there before they had a name of their own: moved to it
+            renamed = run.eval_dir / sweep_file(kept_thresholds(kept))
+            kept.rename(renamed)
+            if kept.with_suffix(".png").exists():
+                kept.with_suffix(".png").rename(renamed.with_suffix(".png"))
         threshold_sweep(run, DEFAULT_SWEEP)
     if "gallery" in missing:
         gallery(run, run.active[-1])

@@ -32,6 +32,7 @@ from layered.overrides import grid
 from layered.plugins import load_plugins
 from layered.recipe import RecipeError, load_recipe, recipe_path, resolved
 from layered.rundir import read_run_info, steps_option
+from layered.runstate import recipe_differences
 
 
 @dataclass(frozen=True)
@@ -103,8 +104,12 @@ def _check_same_run(job: Job) -> None:
     """A run directory from an earlier sweep must hold the same recipe and `--steps`, or resuming (or
     skipping it as finished) would mix two experiments."""
     existing = job.out / "recipe.toml"
-    if existing.exists() and tomllib.loads(existing.read_text()) != tomllib.loads(tomli_w.dumps(job.recipe)):
-        raise RecipeError(str(existing), [(None, "this run directory holds a different recipe; use another --out")])
+    if existing.exists() and (saved := tomllib.loads(existing.read_text())) != (
+            wanted := tomllib.loads(tomli_w.dumps(job.recipe))):
+        differences = recipe_differences(saved, wanted)
+        named = "; ".join(differences[:3]) + (f" and {len(differences) - 3} more" if len(differences) > 3 else "")
+        raise RecipeError(str(existing), [(None, f"this run directory holds a different recipe ({named}); use "
+                                                 "another --out")])
     if (job.out / "run.json").exists() and (made := read_run_info(job.out).max_steps) != job.max_steps:
         raise RecipeError(str(job.out / "run.json"), [(None, f"this run was made with {steps_option(made)}, not "
                                                        f"{steps_option(job.max_steps)}; use another --out, or the "

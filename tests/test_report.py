@@ -14,7 +14,8 @@ import pytest
 
 from layered import load_recipe
 from layered.cli import main
-from layered.report import _steps_axis
+from layered.report import DEFAULT_SWEEP, _steps_axis
+from layered.run_evals import kept_thresholds, missing_figure_evals, run_figure_evals
 from layered.summary import Run, Setup, find_runs, group
 from layered.runs import train
 
@@ -300,6 +301,22 @@ def test_report_without_extra_evaluations_runs_none(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "layered.cli", "report", str(tmp_path / "run"),
                            "--out", str(tmp_path / "report"), "--no-extra-evals"], capture_output=True, text=True)
     assert proc.returncode == 0 and not (tmp_path / "run" / "eval").exists()
+
+
+def test_a_sweep_of_other_thresholds_keeps_a_name_of_its_own_and_never_stands_in_for_fig_2(tmp_path):
+    recipe = load_recipe(PENDULUM / "tla-c.toml", TINY)
+    train(recipe, tmp_path / "run", max_steps=200, progress=False)
+    eval_dir = tmp_path / "run" / "eval"
+    assert main(["eval", str(tmp_path / "run"), "--episodes", "1", "--threshold-sweep", "0,0.3"]) == 0
+    assert sorted(p.name for p in eval_dir.iterdir()) == ["threshold-sweep-0-0.3.csv", "threshold-sweep-0-0.3.png"]
+    assert missing_figure_evals(tmp_path / "run") == ["threshold sweep", "gallery"]
+    # one kept where the default grid's goes (as `layered eval` kept it before): moved aside, then the grid run
+    (eval_dir / "threshold-sweep-0-0.3.csv").rename(eval_dir / "threshold-sweep.csv")
+    before = (eval_dir / "threshold-sweep.csv").read_text()
+    run_figure_evals(tmp_path / "run", ["threshold sweep"])
+    assert (eval_dir / "threshold-sweep-0-0.3.csv").read_text() == before
+    assert kept_thresholds(eval_dir / "threshold-sweep.csv") == DEFAULT_SWEEP
+    assert missing_figure_evals(tmp_path / "run") == ["gallery"]
 
 
 def test_an_unfinished_run_is_taken_at_its_last_evaluation_only_when_asked(tmp_path):

@@ -49,7 +49,7 @@ def test_sweep_refuses_bad_recipes_and_foreign_run_directories(tmp_path):
     assert proc.returncode == 2 and "train.warmup" in proc.stderr and not out.exists()
     assert sweep(PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 100, "--out", out).returncode == 0
     proc = layered_here("sweep", PENDULUM / "td3.toml", *TINY, "learner.lr=1e-3", "--seeds", 1, "--out", out)
-    assert proc.returncode == 2 and "holds a different recipe" in proc.stderr
+    assert proc.returncode == 2 and "holds a different recipe (layers[0].learner.lr: 0.0003 -> 0.001;" in proc.stderr
     proc = layered_here("sweep", PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--steps", 200, "--out", out)  # not reused
     assert proc.returncode == 2 and "this run was made with --steps 100, not --steps 200" in proc.stderr
 
