@@ -146,7 +146,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="on the fresh episodes that training evaluated each phase's final and best weights on "
                     "(seeded train.seed + eval.fresh_seed_offset; default episodes: eval.fresh_episodes), not on "
                     "those of its evaluations during training")
-    ev.add_argument("--threads", type=_positive, help="torch threads")
+    ev.add_argument("--threads", type=_positive, help="the cores it computes on: torch's threads (default: those the "
+                    "run trained with) and those its environments step in (default: every core)")
     _plugin_option(ev, "besides those the run was trained with")
     ev.add_argument("--plot", action="store_true", help="also plot the last episode: who acted when, and the action")
     ev.add_argument("--threshold-sweep", type=_thresholds, nargs="?", const=DEFAULT_SWEEP, metavar="X,Y,...",
@@ -237,7 +238,8 @@ def _parser() -> argparse.ArgumentParser:
     rep.add_argument("--no-extra-evals", action="store_true",
                      help="draw only from what the runs hold; by default each run's missing threshold sweep (Fig. 2) "
                      "and gallery are evaluated once and kept in its eval/ folder")
-    rep.add_argument("--threads", type=_positive, help="torch threads for those evaluations")
+    rep.add_argument("--threads", type=_positive, help="the cores those evaluations compute on: torch's threads and "
+                     "those their environments step in (default: every core)")
     return parser
 
 
@@ -694,12 +696,16 @@ def load(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Carry out a parsed command line, as `main` says."""
+    from layered.cores import cores_given
+
     if getattr(args, "threads", None):
         import torch
 
         torch.set_num_threads(args.threads)
+    evaluating = args.command in ("eval", "report")  # (an evaluation's environments step on its cores too)
     try:
-        return COMMANDS[args.command](args)
+        with cores_given(getattr(args, "threads", None) if evaluating else None):
+            return COMMANDS[args.command](args)
     except (BadInput, LayerFault) as e:  # an input it cannot use; a layer's process that died or stalled
         for line in str(e).splitlines():
             _fail(line)

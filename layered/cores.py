@@ -5,6 +5,8 @@ processes a sweep runs side by side on one machine (so that settings sized to th
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 _SHARE: int | None = None
 """The cores this process is given of those it may run on (`share_cores`), None for all of them."""
@@ -21,3 +23,17 @@ def usable_cores() -> int:
     """The cores this process may run on, or the share of them it was given (`share_cores`)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     return cores if _SHARE is None else min(cores, _SHARE)
+
+
+@contextmanager
+def cores_given(cores: int | None) -> Iterator[None]:
+    """Within it, this process has `cores` of the machine (as `share_cores` says; None: as before), and as before
+    after it: a command's `--threads` in a process that runs several (a test's)."""
+    global _SHARE
+    before = _SHARE
+    if cores is not None:
+        share_cores(cores)
+    try:
+        yield
+    finally:
+        _SHARE = before

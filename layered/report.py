@@ -20,6 +20,7 @@ DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]  # the thresholds of the 
 SWEEP_FILE = "threshold-sweep.csv"
 """A run's threshold sweep on `DEFAULT_SWEEP`, in its eval/ folder: the one Fig. 2 is drawn from."""
 LEGEND_WIDTH = 44
+TITLE_WIDTH = 64  # characters of a figure's title per line: a setup named by its overrides can be long
 """Characters per line of a setup's name in a figure's legend, which wraps longer names (settings, paths) so that
 the legend stays within its plot."""
 
@@ -119,7 +120,7 @@ def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
         ax.fill_between(x, *band(y, np.asarray(s), *_extremes(sel)), color=line.get_color(), alpha=0.2)
     _steps_axis(ax, "environment steps in phase")
     ax.set_ylabel("evaluation return")
-    ax.set_title(title)
+    ax.set_title(textwrap.fill(title, TITLE_WIDTH))
     ax.grid(alpha=0.3)
     ax.legend()
     fig.savefig(out_png, dpi=120)
@@ -495,7 +496,7 @@ def plot_threshold_sweep(rows: Sequence[dict[str, Any]], out_png: Path, title: s
     other.plot(x, [1 - float(r["repetition"]) for r in rows], marker="s", color="C1")
     other.set_ylabel("action frequency (new actions per step)", color="C1")
     other.set_ylim(0, 1.05)
-    ax.set_title(title, loc="left")
+    ax.set_title(textwrap.fill(title, TITLE_WIDTH), loc="left")
     ax.grid(alpha=0.3)
     fig.savefig(out_png, dpi=120)
     plt.close(fig)

@@ -324,3 +324,13 @@ def test_an_evaluation_stepping_rows_in_several_threads_computes_on_one_torch_th
     finally:
         torch.set_num_threads(before)
         envs.close()
+
+
+def test_an_evaluations_threads_step_its_environments_on_that_many_cores_and_no_longer_after(monkeypatch):
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda _: set(range(8)))
+    assert thread_count("auto", 10, 0, evaluation=True) == 8
+    with cores.cores_given(1):  # `layered eval --threads 1`
+        assert cores.usable_cores() == 1 and thread_count("auto", 10, 0, evaluation=True) == 0
+    with cores.cores_given(None):  # no --threads: as before
+        assert thread_count("auto", 10, 0, evaluation=True) == 8
+    assert cores.usable_cores() == 8
