@@ -123,7 +123,7 @@ def test_a_plugin_combiner_trains_evaluates_draws_its_threshold_figure_and_expor
     cli("train", "pendulum/tla-c.toml", "combine.kind=test-halving", *tiny, "--steps", 300, "--out", run,
         "--plugin", plugin)
     cli("eval", run, "--threshold-sweep", "0,0.5", "--episodes", 1)
-    assert (run / "eval" / "threshold-sweep.png").exists()
+    assert (run / "eval" / "threshold-sweep-0-0.5.png").exists()
     printed = cli("export", run, "--episodes", 1)
     assert "the same executed actions" in printed
     out = run / "export-torchscript"

@@ -182,7 +182,8 @@ def test_extends_errors(tmp_path):
     (tmp_path / "b.toml").write_text('extends = "a.toml"\n')
     assert "extends itself" in errors(tmp_path / "a.toml")[0]
     (tmp_path / "c.toml").write_text('extends = "missing.toml"\n')
-    assert "missing.toml: no such recipe file" in errors(tmp_path / "c.toml")[0]
+    missing = (tmp_path / "missing.toml").resolve()
+    assert errors(tmp_path / "c.toml")[0] == f"{tmp_path / 'c.toml'}: extends: no such recipe file: {missing}"
 
 
 def test_every_recipe_folder_python_could_import_is_a_package_of_the_wheel():
