@@ -19,9 +19,11 @@ from layered.envs.registry import FAMILIES, EnvFamily, EnvInfo
 if TYPE_CHECKING:
     from layered.envs.state import StateRules
 
-# Every suite task pays a reward in [0, 1] per control step over 1000 steps.
+# Every suite task pays a reward in [0, 1] per control step over 1000 steps, but those of the domains that end
+# only where the task says (the linear-quadratic regulators run until their state settles: no time limit).
 SUITE_RETURN_RANGE = (0.0, 1000.0)
 SUITE_EPISODE_STEPS = 1000
+UNLIMITED_DOMAINS = frozenset({"lqr"})
 
 
 def _flatten(observation: dict[str, Any]) -> np.ndarray:
@@ -86,7 +88,9 @@ class DmControlFamily(EnvFamily):
         return DmControlEnv(*self._split(name), render_mode=render_mode)
 
     def info(self, name: str) -> EnvInfo:
-        self._split(name)
+        domain, _ = self._split(name)
+        if domain in UNLIMITED_DOMAINS:
+            return EnvInfo(return_range=None, episode_steps=None)
         return EnvInfo(return_range=SUITE_RETURN_RANGE, episode_steps=SUITE_EPISODE_STEPS)
 
     def state_rules(self) -> StateRules:

@@ -60,6 +60,17 @@ def test_dm_control_time_limit_is_truncation():
     assert (steps, terminated, truncated) == (1000, False, True)
 
 
+def test_dm_control_constants_are_the_tasks_own_time_limit_and_range():
+    """Every suite task runs 1000 steps paying [0, 1] a step, but the regulators', which run until they settle."""
+    from dm_control import suite
+
+    for domain, task in suite.ALL_TASKS:
+        limit = suite.load(domain, task)._step_limit
+        info = envs.env_info(f"dmc:{domain}-{task}")
+        assert (info.episode_steps, info.return_range) == ((1000, (0.0, 1000.0)) if limit == 1000 else (None, None))
+    assert envs.env_info("dmc:lqr-lqr_2_1").episode_steps is None
+
+
 def test_goal_conditioned_observations_are_flattened_in_sorted_key_order():
     env = envs.make_env("robotics:PointMaze_UMaze-v3")
     flat, _ = env.reset(seed=0)
