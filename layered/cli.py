@@ -288,7 +288,7 @@ def _label(source: Path) -> str:
 
 def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[str]) -> int:
     from layered.group import check_group, group_recipes, train_group
-    from layered.group_state import clear_group
+    from layered.group_state import check_group_directory, clear_group
     from layered.recipe import recipe_path
     from layered.rundir import clear_run_dir
 
@@ -300,6 +300,7 @@ def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[s
     out = args.out or Path("runs") / f"{source.stem}-group-{time.strftime('%Y%m%d-%H%M%S')}"
     args.out = out  # (stopped at once, it is resumed from here)
     outs = [out / f"seed{seed}" for seed in args.seeds]
+    check_group_directory(out, outs)  # (before --force clears anything)
     for run in outs:
         if args.force and run.is_dir():
             clear_run_dir(run)

@@ -187,12 +187,28 @@ def has_group_checkpoint(directory: Path) -> bool:
 
 
 def check_new_group(directory: Path, outs: Sequence[Path]) -> None:
-    """Refuse to start a group over seeds' run directories that hold runs, or where a stopped group waits."""
+    """Refuse to start a group over seeds' run directories that hold runs, where a stopped group waits, or where
+    `check_group_directory` refuses it."""
+    check_group_directory(directory, outs)
     for out in outs:
         check_new_run_dir(out)
     if has_group_checkpoint(directory):
         raise RunDirError(f"{directory} holds a stopped group; continue it with `layered resume {directory}`, "
                           "or --force to start over")
+
+
+def check_group_directory(directory: Path, outs: Sequence[Path]) -> None:
+    """Refuse a group's `directory` where it holds a run of its own or the seeds of another group (a directory holds
+    one group: its resume, evaluation and report take the group its seeds' run.json name), --force or not."""
+    if any((directory / name).exists() for name in ("run.json", "recipe.toml")):
+        raise RunDirError(f"{directory} holds a run of its own; a group's seeds go in a directory of their own: choose "
+                          "another --out")
+    mine = {out.name for out in outs}
+    others = sorted((p.parent.name for p in directory.glob("seed*/run.json") if p.parent.name not in mine),
+                    key=lambda name: (len(name), name))
+    if others:
+        raise RunDirError(f"{directory} holds {', '.join(others)} of another group; a directory holds one group: "
+                          "choose another --out")
 
 
 def clear_group(directory: Path) -> None:

@@ -340,3 +340,19 @@ def test_a_group_stopped_at_once_while_writing_its_results_says_how_to_resume_it
     monkeypatch.undo()
     assert main(["resume", str(out)]) == 0
     assert all((out / f"seed{seed}" / "results.json").exists() for seed in (0, 1))
+
+
+def test_a_group_is_refused_a_directory_that_holds_another_group_or_a_run_of_its_own(tmp_path, capsys):
+    """A directory holds one group: its resume, evaluation and report take the group its seeds' run.json name, so a
+    second group's seeds beside them could be neither resumed nor evaluated; even --force leaves the others there."""
+    train = ["train", str(ROOT / "recipes/pendulum/td3.toml"), "--steps", "100", *TINY]
+    assert main([*train, "--seeds", "0-1", "--out", str(tmp_path / "g")]) == 0
+    assert main([*train, "--out", str(tmp_path / "single")]) == 0
+    for out, seeds, says in ((tmp_path / "g", "3-4", "holds seed0, seed1 of another group"),
+                             (tmp_path / "single", "0-1", "holds a run of its own")):
+        capsys.readouterr()
+        for force in ([], ["--force"]):
+            assert main([*train, "--seeds", seeds, "--out", str(out), *force]) == 2
+            assert says in capsys.readouterr().err
+        assert not (out / "seed3").exists() and not (tmp_path / "single" / "seed0").exists()
+    assert main([*train, "--seeds", "0-1", "--out", str(tmp_path / "g"), "--force"]) == 0  # the same group again
