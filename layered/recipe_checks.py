@@ -49,6 +49,7 @@ def _check_layers(recipe: Recipe) -> list[tuple[str, str]]:
         if layer.sees_executed and not layer.delay:
             problems.append((f"{where}.sees_executed", "without a delay a layer has no outputs in flight to see: "
                              "remove the key, or give the layer a delay"))
+        problems += _unused_settings(recipe, i)
         if layer.combine is None:
             continue
         if layer.combine not in COMBINERS:
@@ -56,6 +57,24 @@ def _check_layers(recipe: Recipe) -> list[tuple[str, str]]:
         elif i == len(names) - 1:
             problems.append((f"{where}.combine", "the fastest layer has no layer below to merge with; remove its "
                              "combine"))
+    return problems
+
+
+def _unused_settings(recipe: Recipe, i: int) -> list[tuple[str, str]]:
+    """Layer `i`'s settings for a combiner it does not have: a gate's rewards while it defers on a layer that gates
+    nothing, a threshold on one whose combiner thresholds nothing (the fastest layer, a gate)."""
+    layer, kind = recipe.layers[i], recipe.combiner_kind(i)
+    combiner = COMBINERS.get(kind) if kind is not None and kind in COMBINERS else None
+    has = "it is the fastest layer" if kind is None else f"its combiner is {kind!r}"
+    gates = bool(combiner and combiner.gate_dims)
+    problems = [(f"layers[{i}].{key}", f"it shapes a gate's rewards while the gate defers, and layer {layer.name!r} "
+                 f"gates nothing ({has}): remove the key")
+                for key in ("defer_reward_scale", "defer_penalty")
+                if not gates and getattr(layer, key) != type(layer).model_fields[key].default]
+    if layer.eval_threshold is not None and not (combiner and combiner.thresholded):
+        problems.append((f"layers[{i}].eval_threshold", "it thresholds the contributions this layer's combiner admits "
+                         f"from the layer right below it, and layer {layer.name!r} thresholds none ({has}): remove "
+                         "the key"))
     return problems
 
 

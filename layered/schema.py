@@ -112,7 +112,8 @@ class LayerConfig(Section):
     combine: str | None = None
     """How this layer merges with the layers below; defaults to `combine.kind`."""
     eval_threshold: float | None = Field(default=None, ge=0)
-    """Overrides `combine.eval_threshold` for the layers below this one."""
+    """Overrides `combine.eval_threshold` for what this layer's combiner admits from the layer right below it (a
+    residual combiner's; each layer further below is thresholded by the combiner of the layer above it)."""
     action_scale: float = Field(default=1.0, gt=0)
     """The layer's action range as a multiple of the environment's (2 lets a residual cancel)."""
     action_penalty: float = Field(default=0.0, ge=0)
