@@ -96,7 +96,8 @@ def _readable(path: Path, read: Callable[[Path], Run]) -> Run:
 
 def _read_finished_run(path: Path) -> Run:
     results = json.loads((path / "results.json").read_text())
-    recipe = _recipe(path, _run_json(path))
+    info = _run_json(path)
+    recipe = _recipe(path, info)
     final = results["phases"][-1]
     rows = _metrics(path)
     start = _start_weights(recipe)
@@ -105,7 +106,7 @@ def _read_finished_run(path: Path) -> Run:
         seed=int(results.get("seed", recipe["train"]["seed"])), realtime=_realtime(recipe),
         final={k: v for k, v in final.items() if isinstance(v, int | float) and not isinstance(v, bool)}
         | _run_auc(results["phases"], recipe, _continues(start[2])),
-        curve=_curve(rows, str(final["phase"])), phases=tuple(results["phases"]), setting=_setting(recipe),
+        curve=_curve(rows, str(final["phase"])), phases=tuple(results["phases"]), setting=_setting(recipe, info),
         **_whole_run(rows, start),
     )
 
@@ -144,7 +145,7 @@ def _read_unfinished_run(path: Path) -> Run:
         path=path, env=recipe["env"]["id"], label=info.get("label") or _label(path), seed=int(recipe["train"]["seed"]),
         realtime=_realtime(recipe), final=final, curve=curve,
         phases=(*before, {**final, "learn": last["learn"].split("+")}),
-        stands=f"phase {last['phase']}, step {last['step']}", setting=_setting(recipe),
+        stands=f"phase {last['phase']}, step {last['step']}", setting=_setting(recipe, info),
         **_whole_run(rows, _start_weights(recipe)),
     )
 
@@ -167,15 +168,17 @@ NOT_A_SETTING = frozenset({"train.seed", "train.checkpoint_every", "env.workers"
 """Recipe keys that differ between the seeds of one setup, or change no number it reports."""
 
 
-def _setting(recipe: dict[str, Any]) -> tuple[tuple[str, str], ...]:
+def _setting(recipe: dict[str, Any], info: dict[str, Any]) -> tuple[tuple[str, str], ...]:
     """A resolved recipe as (dotted key, value) pairs, layers by name, `NOT_A_SETTING` left out and
     `train.steps_per_phase` too where explicit phases each name their steps (there it changes nothing, and a label
-    that showed it would misstate the budget): what tells the setups of runs filed under one label apart."""
+    that showed it would misstate the budget), with the `--steps` cap of its run.json (`info`) as `--steps`: what
+    tells the setups of runs filed under one label apart."""
     train = recipe.get("train", {})
     phases = train.get("phases") or []
     if train.get("order") == "explicit" and phases and all(p.get("steps") for p in phases):
         recipe = {**recipe, "train": {k: v for k, v in train.items() if k != "steps_per_phase"}}
-    return _pairs(recipe)
+    cap = (("--steps", "none" if info["max_steps"] is None else str(info["max_steps"])),) if "max_steps" in info else ()
+    return _pairs(recipe) + cap
 
 
 def _pairs(recipe: Any, prefix: str = "") -> tuple[tuple[str, str], ...]:
@@ -359,6 +362,13 @@ def group(runs: Iterable[Run]) -> list[Setup]:
     for run in told_apart(runs):
         by_key.setdefault((run.env, run.method), []).append(run)
     setups = [Setup(env, rs[0].label, tuple(sorted(rs, key=lambda r: r.seed))) for (env, _), rs in by_key.items()]
+    for s in setups:
+        if twice := sorted({r.seed for r in s.runs if [q.seed for q in s.runs].count(r.seed) > 1}):
+            paths = ", ".join(str(r.path) for r in s.runs if r.seed == twice[0])
+            several = len(twice) > 1
+            print(f"layered: warning: {s.env} {s.method}: seed{'s' * several} {', '.join(map(str, twice))} "
+                  f"come{'s' * (not several)} from more than one run of the same setup (seed {twice[0]}: {paths}), "
+                  "each counted as a seed of its own", file=sys.stderr)
 
     def order(s: Setup) -> tuple[str, int, str]:
         rank = METHOD_ORDER.index(s.method) if s.method in METHOD_ORDER else len(METHOD_ORDER)

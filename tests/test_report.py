@@ -211,24 +211,24 @@ def test_grouping_orders_methods_as_the_paper():
     assert [len(s.runs) for s in setups] == [1, 1, 1, 2]
 
 
-def test_runs_of_different_recipes_under_one_label_are_setups_of_their_own():
+def test_runs_of_different_recipes_under_one_label_are_setups_of_their_own(capsys):
     from layered.summary import _setting
 
-    def at(seed, penalty, order, older=False):
+    def at(seed, penalty, order, older=False, steps=None):
         recipe = {"env": {"id": "Pendulum-v1"}, "train": {"seed": seed, "order": order},
                   "layers": [{"name": "slow", "period": 4}, {"name": "fast", "action_penalty": penalty}]}
         if not older:
             recipe["train"]["select"] = "best"  # a key older runs lack does not split them
-        return replace(run("p/tla-c", seed, 0, 0, []), setting=_setting(recipe))
+        return replace(run("p/tla-c", seed, 0, 0, []), setting=_setting(recipe, {"max_steps": steps}))
 
     flat = {"layers.fast.a": "[1, 2]"}
     assert dict(_setting({"layers": [{"name": "fast", "a": [1, 2]}], "train": {"seed": 3, "checkpoint_every": 9},
-                          "log": {"tensorboard": True}, "env": {"workers": 2}})) == flat
+                          "log": {"tensorboard": True}, "env": {"workers": 2}}, {})) == flat
     # explicit phases that each name their steps make `steps_per_phase` inert: it is no setting of the run
     phased = {"train": {"order": "explicit", "steps_per_phase": 9, "phases": [{"learn": ["fast"], "steps": 3}]}}
-    assert "train.steps_per_phase" not in dict(_setting(phased))
+    assert "train.steps_per_phase" not in dict(_setting(phased, {}))
     phased["train"]["phases"].append({"learn": ["slow"]})  # a phase without steps runs `steps_per_phase` of them
-    assert dict(_setting(phased))["train.steps_per_phase"] == "9"
+    assert dict(_setting(phased, {}))["train.steps_per_phase"] == "9"
     setups = group([at(0, 1.0, "slow-to-fast"), at(1, 1.0, "slow-to-fast", older=True), at(0, 2.0, "explicit"),
                     at(1, 2.0, "explicit")])
     assert [(s.label, [r.seed for r in s.runs]) for s in setups] == [
@@ -236,6 +236,13 @@ def test_runs_of_different_recipes_under_one_label_are_setups_of_their_own():
         ("p/tla-c layers.fast.action_penalty=2.0 train.order=explicit", [0, 1]),
     ]
     assert [len(s.runs) for s in group([at(0, 1.0, "joint"), at(1, 1.0, "joint")])] == [2]  # the seed alone: one
+    # runs capped at another --steps are another setup; a seed from two runs of one setup is named
+    assert [(s.label, len(s.runs)) for s in group([at(0, 1.0, "joint", steps=1000), at(0, 1.0, "joint")])] == [
+        ("p/tla-c --steps=1000", 1), ("p/tla-c --steps=none", 1)]
+    assert "come from more than one run" not in capsys.readouterr().err
+    assert [len(s.runs) for s in group([at(0, 1.0, "joint"), at(0, 1.0, "joint"), at(1, 1.0, "joint")])] == [3]
+    assert "tla-c: seed 0 comes from more than one run of the same setup (seed 0: /r/p/tla-c-0, /r/p/tla-c-0)" in \
+        capsys.readouterr().err
     # a key unset by default is left out of a resolved recipe while unset: a layer started from weights is apart
     started = replace(at(1, 1.0, "joint"), setting=(*at(1, 1.0, "joint").setting, ("layers.slow.weights", "w.pt")))
     assert [s.label for s in group([at(0, 1.0, "joint"), started, at(2, 1.0, "joint", older=True)])] == [
