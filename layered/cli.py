@@ -87,7 +87,10 @@ def _seeds(text: str) -> list[int]:
                 raise argparse.ArgumentTypeError(f"a range A-B needs A at most B, got {text!r}")
             seeds = list(range(first, min(last, first + MAX_GROUP) + 1))
         elif text.strip().isdigit():
-            seeds = list(range(min(_positive(text), MAX_GROUP + 1)))
+            if int(text) == 0:
+                raise argparse.ArgumentTypeError("a count N trains seeds 0..N-1, so it is at least 1 (seed 0 alone: "
+                                                 "--seeds 1, or --seed 0 as a single run)")
+            seeds = list(range(min(int(text), MAX_GROUP + 1)))
         else:
             raise ValueError
     except ValueError:
@@ -434,7 +437,9 @@ def _eval_group(args: argparse.Namespace) -> int:
     print(results_table([{**row, "phase": run.path.name} for run, (row, _) in zip(runs, written, strict=True)]))
     returns = [result.return_mean for result in results]
     print(f"over the {len(runs)} seeds: return {statistics.fmean(returns):.1f} ± {statistics.pstdev(returns):.1f}")
-    print(f"written to {written[0][1]}, and to the same name in each seed's run directory")
+    names = {path.relative_to(run.path) for run, (_, path) in zip(runs, written, strict=True)}
+    print(f"written to {written[0][1]}, and to the same name in each seed's run directory" if len(names) == 1 else
+          f"written to {written[0][1]} and to each seed's own eval folder (its weights named by its own best step)")
     return 0
 
 

@@ -52,7 +52,8 @@ def results_table(rows: Sequence[dict[str, Any]]) -> str:
             f"| {r.get('phase', '')} | {'+'.join(r.get('learn', []))} | {'+'.join(r.get('active', []))} "
             f"| {r['return_mean']:.1f} ± {r['return_std']:.1f} | {auc} | {100 * r['repetition']:.1f}% "
             f"| {_percent(r, 'repetition_at_bounds')} | {_percent(r, 'repetition_held')} | {r['jerk']:.3f} "
-            f"| {r['decisions']:.1f} of {r['episode_steps']:.0f} | {_macs(r['compute'])} "
+            f"| {r['decisions']:.1f} of {r['episode_steps']:.{0 if float(r['episode_steps']).is_integer() else 1}f} "
+            f"| {_macs(r['compute'])} "
             f"| {_activity(r, 'decided_')} | {_activity(r, 'acted_')} | {_activity(r, 'contribution_', '{:.3f}')} |"
         )
     fresh = [r for r in rows if "fresh_final_return_mean" in r]
@@ -161,7 +162,7 @@ def plot_episode(trace: Sequence[Any], layers: Sequence[str], out_png: Path, tit
     bottom.set_ylabel("executed action")
     bottom.grid(alpha=0.3)
     if actions and len(actions[0]) <= 8:
-        bottom.legend(loc="upper right", fontsize="small", ncols=4)
+        bottom.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize="small", frameon=False)  # (off the lines)
     fig.savefig(out_png, dpi=120)
     plt.close(fig)
 
@@ -347,7 +348,7 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
             _steps_axis(ax, xlabel)
             ax.set_ylabel("evaluation return")
             ax.grid(alpha=0.3)
-            ax.legend(fontsize="small")
+            ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False)  # (off the data)
     fig.savefig(out_png, dpi=120)
     plt.close(fig)
 

@@ -86,6 +86,7 @@ CASES = {
                            "a-file: is a file, not a directory"),
     "eval zero episodes": (["eval", "{tmp}", "--episodes", "0"], "--episodes: must be positive"),
     "sweep zero seeds": (["sweep", str(TLA_C), "--seeds", "0"], "--seeds: must be positive"),
+    "a group of zero seeds": (["train", str(TLA_C), "--seeds", "0"], "a count N trains seeds 0..N-1, so it is at"),
     "a descending range of seeds": (["train", str(TLA_C), "--seeds", "5-3"],
                                     "--seeds: a range A-B needs A at most B, got '5-3'"),
     "a period written as a string": (["train", str(TLA_C), 'layers.fast.period="1"'],

@@ -479,6 +479,8 @@ def test_the_repetitions_at_the_bounds_and_held_show_beside_the_repetition_and_a
     table = results_table([row | fresh, before_held, before_both]).splitlines()
     assert "| 0.900 | 50.0% | 12.5% | 25.0% | 0.250 |" in table[2]
     assert "| 0.900 | 50.0% | 12.5% | n/a | 0.250 |" in table[3] and "| 0.900 | 50.0% | n/a | n/a | 0.250 |" in table[4]
+    assert "| 200.0 of 200 |" in table[2]
+    assert "| 4.3 of 4.3 |" in results_table([row | {"decisions": 13 / 3, "episode_steps": 13 / 3}])  # never 4.3 of 4
     assert "| -160.0 ± 1.0 | 75.0% | 50.0% | 37.5% | 100 | -140.0 | -150.0 ± 2.0 | 25.0% | 0.0% | 12.5% |" in table[-3]
     assert "| -160.0 ± 1.0 | 75.0% | 50.0% | n/a | 100 | -140.0 | -150.0 ± 2.0 | 25.0% | 0.0% | n/a |" in table[-2]
     assert "| -160.0 ± 1.0 | 75.0% | n/a | n/a | 100 | -140.0 | -150.0 ± 2.0 | 25.0% | n/a | n/a |" in table[-1]
