@@ -231,7 +231,8 @@ def seeds_table(setups: Sequence[Any]) -> str:
     lines = ["| environment | setup | seed ids | run directories |", "|---|---|---|---|"]
     for s in setups:
         dirs = ", ".join(str(r.path) if r.finished else f"{r.path} ({r.stands})" for r in s.runs)
-        setup = s.label + (f" ({', '.join(s.runs[0].unnamed)})" if s.runs[0].unnamed else "")
+        setup = s.label + (f" ({', '.join(s.runs[0].unnamed)})" if s.runs[0].unnamed else "") + \
+            ("" if s.runs[0].finished else " (unfinished)")
         lines.append(f"| {s.env} | {setup} | {', '.join(str(r.seed) for r in s.runs)} | {dirs} |")
     return "\n".join(lines)
 

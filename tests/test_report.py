@@ -368,6 +368,7 @@ def test_report_of_a_stopped_run_beside_a_finished_one(tmp_path, monkeypatch):
     assert proc.returncode == 0, proc.stderr
     assert "return: td3 | return: td3 (unfinished)" in proc.stdout and f"{float(last[3]):.1f} (1 seed)" in proc.stdout
     assert f"{stopped} (phase 0, step {last[2]})" in proc.stdout and "evaluating" not in proc.stderr
+    assert f"| Pendulum-v1 | pendulum/td3 (unfinished) | 1 | {stopped} (phase 0" in proc.stdout  # the Runs table
 
 
 @pytest.mark.parametrize("seeds", [[], ["--seeds", "0,1"]], ids=["single", "group"])
