@@ -303,13 +303,14 @@ def _total_curve(rows: Sequence[dict[str, str]], before: int = 0) -> tuple[tuple
     """Evaluation return against environment steps since training began (`before`: the steps behind the run's
     start weights), phases laid end to end.
 
-    A later phase's first evaluation is dropped: it falls on the step where the previous phase
-    ended, and the curve shows the stack as trained at each step."""
+    A later phase's first evaluation falls on the step where the previous phase ended, beside that phase's last:
+    both are kept, so that the curve shows the hand-over there (the weights `train.select` hands on, and the layer
+    the phase adds, still acting at random)."""
     points: list[tuple[int, float]] = []
     offset = before
     for phase in dict.fromkeys(r["phase"] for r in rows):
         steps = [(int(r["step"]), float(r["return_mean"])) for r in rows if r["phase"] == phase]
-        points += [(offset + s, v) for s, v in steps if not (points and s == 0)]
+        points += [(offset + s, v) for s, v in steps]
         offset += max(s for s, _ in steps)
     return tuple(points)
 

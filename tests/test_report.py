@@ -50,8 +50,10 @@ def test_whole_run_curve_lays_phases_end_to_end(tmp_path):
                                           "1,0,-300\n1,5000,-160\n1,10000,-150\n")
     run_ = find_runs([tmp_path])[0]
     assert run_.curve == ((0, -300.0), (5000, -160.0), (10000, -150.0))
-    # the fast phase's first evaluation (-300, at the slow phase's end) is dropped; its steps follow 10002
-    assert run_.total_curve == ((0, -900.0), (5001, -400.0), (10002, -200.0), (15002, -160.0), (20002, -150.0))
+    # the fast phase's first evaluation (-300, the hand-over) is at the slow phase's end, beside its last; its steps
+    # follow 10002
+    assert run_.total_curve == ((0, -900.0), (5001, -400.0), (10002, -200.0), (10002, -300.0), (15002, -160.0),
+                                (20002, -150.0))
 
 
 def test_a_run_started_from_another_runs_weights_continues_that_runs_steps(tmp_path):
@@ -76,7 +78,8 @@ def test_a_run_started_from_another_runs_weights_continues_that_runs_steps(tmp_p
     write(tmp_path / "d", "0,fast,0,-250\n0,fast,5000,-140\n", [("slow", f"{tmp_path}/slow.pt"), ("fast", None)])
     b, c, d = (find_runs([tmp_path / name])[0] for name in "bcd")
     assert b.trained_before == 10002 and b.total_curve == ((10002, -250.0), (15002, -140.0))
-    assert c.trained_before == 15002 and c.total_curve == ((15002, -140.0), (17502, -130.0), (20002, -120.0))
+    assert c.trained_before == 15002 and c.total_curve == ((15002, -140.0), (17502, -130.0), (17502, -130.0),
+                                                           (20002, -120.0))
     assert c.phase_starts == (17502,)
     assert d.trained_before == 0 and d.total_curve == d.curve == ((0, -250.0), (5000, -140.0))
     # the runs behind each: b and c hold a's slow layer, c b's fast one; d nothing of theirs
