@@ -48,7 +48,12 @@ def reference() -> str:
     lines = ["# Recipe reference", "", "Generated from the schema by `python -m layered.reference`; do not edit.", "",
              (Recipe.__doc__ or "").strip(), "",
              "`[learner]` holds settings shared by every layer's learner (`kind` plus that learner's keys); "
-             "`[layers.learner]` overrides them for one layer.", ""]
+             "`[layers.learner]` overrides them for one layer.", "",
+             "A top-level `extends = \"path.toml\"` (relative to the recipe's file) takes that recipe and lays this "
+             "one over it: tables merge key by key, and any other value, the list of `[[layers]]` included, replaces "
+             "the one it extends. On the command line, `key=value` sets any key below: a layer by name or index "
+             "(`layers.fast.action_penalty=0.5`, `layers[1].period=2`), the value read as TOML and as a string "
+             "where it is none (`'learner.hidden=[64, 64]'`, quoted for the shell).", ""]
     for title, model in TABLES:
         lines += _table(title, model)
     for name in LEARNERS.names():
