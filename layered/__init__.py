@@ -25,6 +25,10 @@ __all__ = ["BadInput", "Diverged", "LayeredEnv", "Recipe", "RecipeError", "load_
 __version__ = "0.1.0"
 
 
+def __dir__() -> list[str]:
+    return sorted([*globals(), *__all__])
+
+
 def __getattr__(name: str) -> Any:
     if name not in _HOMES:
         raise AttributeError(f"module 'layered' has no attribute {name!r}")

@@ -64,8 +64,10 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
 
     def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> None:
         self._obs, _ = self.base.reset(seed=seed, options=options)
-        if seed is not None:
+        if seed is not None:  # (so that a loop sampling `action_space(layer)` repeats itself given the seed)
             self.base.action_space.seed(seed)
+            for k, name in enumerate(self.possible_agents):
+                self._action_spaces[name].seed(seed + 1 + k)
         self.stack.reset()
         self.agents = list(self.possible_agents)
         self.rewards = dict.fromkeys(self.agents, 0.0)
@@ -87,12 +89,15 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
     def step(self, action: np.ndarray | None) -> None:
         """The selected layer's decision; the environment then runs until some layer is due or the
         episode ends (`episode_steps` counts the base steps run)."""
+        if not self.agents:
+            raise RuntimeError("the episode has ended: reset the env before stepping it again")
         agent = self.agent_selection
         if self.terminations[agent] or self.truncations[agent]:
             self._was_dead_step(action)
             return
         if action is None:
             raise ValueError(f"layer {agent!r} is due and must be given an action, not None")
+        self._check_action(agent, action)
         i = self._index[agent]
         self._cumulative_rewards[agent] = 0.0
         self.infos[agent] = {}
@@ -113,6 +118,21 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
             assert due is not None
             self.agent_selection = self.stack.layers[due].name
             self._complete(self.agent_selection)
+
+    def last(self, observe: bool = True) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        if not self.agents:
+            raise RuntimeError("the episode has ended: reset the env before asking for its last step")
+        return super().last(observe)
+
+    def _check_action(self, agent: str, action: np.ndarray) -> None:
+        """Refuse an action of another size than the layer's action space, or with a NaN or an infinity in it (its
+        output is clipped to the space when the stack holds it; the transition records it as given)."""
+        output, space = np.asarray(action), self._action_spaces[agent]
+        if output.size != int(np.prod(space.shape)):
+            raise ValueError(f"layer {agent!r} outputs {int(np.prod(space.shape))} numbers (its action space is "
+                             f"{space}), not an array of shape {output.shape}")
+        if not np.isfinite(output).all():
+            raise ValueError(f"layer {agent!r} was given a non-finite action {output.ravel().tolist()}")
 
     def _complete(self, agent: str) -> None:
         """It is `agent`'s turn: hand it the transition completed since its latest decision."""
@@ -169,7 +189,10 @@ def make_aec_env(
     keep_trace: bool = False,
     render_mode: str | None = None,
 ) -> LayeredEnv:
-    """The AEC env of a recipe's stack (all layers present unless `active` names some), reset with `seed`."""
+    """The AEC env of a recipe's stack (all layers present unless `active` names some), reset with `seed`: as
+    training runs it, or with `evaluation` as evaluations do (contributions thresholded at the recipe's thresholds, or
+    at `threshold`, a fraction of the maximum action); with `keep_trace` every base step of an episode is kept in
+    `trace`, and `render_mode` is the environment's."""
     base = make_env(recipe.env.id, render_mode=render_mode)
     obs_space, action_space = base.observation_space, base.action_space
     assert isinstance(obs_space, Box) and isinstance(action_space, Box)

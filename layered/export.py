@@ -64,6 +64,7 @@ def _policy(learner: Learner, name: str) -> torch.nn.Module:
 
 
 def _write_policy(module: torch.nn.Module, obs_dim: int, path: Path) -> None:
+    module.eval()  # (a policy acts as in evaluation, and the exporters warn of one left in training mode)
     example = torch.zeros(obs_dim)
     if path.suffix == ".pt":
         with warnings.catch_warnings():  # TorchScript is deprecated upstream, yet it is what loads with torch alone

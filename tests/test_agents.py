@@ -91,6 +91,36 @@ def test_same_seed_same_trajectory():
     assert not np.array_equal(a1, rollout(6)[0])
 
 
+def test_a_loop_sampling_the_layers_action_spaces_repeats_itself_given_the_seed():
+    """The README's loop: each layer's action space is seeded from the env's seed at reset."""
+    def rollout(seed):
+        env = make_aec_env(stack_recipe([4, 1], "gate"), seed=seed, keep_trace=True)
+        for name in env.agent_iter():
+            _, _, term, trunc, _ = env.last()
+            env.step(None if term or trunc else env.action_space(name).sample())
+        return np.array([s.action for s in env.trace])
+
+    assert np.array_equal(rollout(3), rollout(3)) and not np.array_equal(rollout(3), rollout(4))
+
+
+def test_misuse_of_the_agent_view_is_one_clear_error_naming_the_layer():
+    env = make_aec_env(stack_recipe([4, 1]), seed=0)
+    with pytest.raises(ValueError, match=r"layer 'l0' outputs 1 numbers \(its action space is .*\), not an array of "
+                                         r"shape \(3,\)"):
+        env.step(np.zeros(3, np.float32))
+    with pytest.raises(ValueError, match=r"layer 'l0' was given a non-finite action \[nan\]"):
+        env.step(np.array([np.nan], np.float32))
+    with pytest.raises(ValueError, match="non-finite action \\[inf\\]"):
+        env.step(np.array([np.inf], np.float32))
+    for name in env.agent_iter():
+        _, _, term, trunc, _ = env.last()
+        env.step(None if term or trunc else np.zeros(1, np.float32))
+    with pytest.raises(RuntimeError, match="the episode has ended: reset the env before stepping it again"):
+        env.step(np.zeros(1, np.float32))
+    with pytest.raises(RuntimeError, match="the episode has ended: reset the env"):
+        env.last()
+
+
 def test_a_repeating_layer_gets_the_observation_and_reward_of_each_period_it_held():
     recipe = stack_recipe([1])
     recipe = recipe.model_copy(update={"layers": [recipe.layers[0].model_copy(update={"max_repeat": 4})]})
