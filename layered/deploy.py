@@ -291,17 +291,22 @@ class Driver:
     def _fault(self, i: int, message: str) -> None:
         """A layer's process died or stalled: stop it, then go on without it or stop, as the settings say."""
         self.dead.add(i)
-        self.processes[i].close()
+        self.processes[i].abandon()  # (closing it would keep the clock waiting a third of a second for it to end)
         self.pending[i].clear()
         where = f"at step {self.t} of episode {self.episode}"
         if self.settings.on_fault == "stop":
             self.faults.append(f"{message} {where}; stopping (--on-fault stop)")
             self.notify(f"layered: {self.faults[-1]}")
             raise Stop(self.faults[-1])
+        combiner = self.rules.layers[i].combiner
         if i == self.rules.active[-1]:  # the fastest present layer: its correction goes
             self.rules.held[i][...] = 0.0
             self.rules.inflight[i][...] = 0.0
             going_on = "going on with the slower layers' outputs alone"
+        elif combiner is not None and combiner.encoding is not None:  # a gate: it defers to the layers below from now
+            self.rules.held[i][..., -combiner.gate_dims:] = combiner.encoding.defer
+            self.rules.inflight[i][..., -combiner.gate_dims:] = combiner.encoding.defer
+            going_on = "going on with the layers below it, its gate deferring"
         else:
             going_on = "going on with its last output held"
         self.faults.append(f"{message} {where}; {going_on} (--on-fault hold)")

@@ -254,6 +254,7 @@ class LayerEnd(Protocol):
     def wait_ready(self, timeout_s: float) -> None: ...
     def send(self, request: Request) -> None: ...
     def receive(self, timeout_s: float) -> Reply | None: ...
+    def abandon(self) -> None: ...
     def close(self) -> None: ...
 
 
@@ -320,6 +321,12 @@ class LayerProcess:
         if code is None:
             return "its connection closed"
         return f"killed by signal {-code}" if code < 0 else f"exit status {code}"
+
+    def abandon(self) -> None:
+        """Stop a faulted layer's process at once, without waiting for it to end (the driver's clock goes on; `close`
+        collects it later)."""
+        if self.process.is_alive():
+            self.process.kill()
 
     def close(self) -> None:
         """Ask the process to exit; stop it if it does not within a second. Idempotent."""

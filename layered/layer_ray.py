@@ -91,6 +91,10 @@ class RayLayer:
             raise LayerFault(f"layer {self.name!r} (Ray actor, pid {self.pid}) died: "
                              f"{str(e).strip().splitlines()[0]}") from None
 
+    def abandon(self) -> None:
+        """Stop a faulted layer's actor (Ray does not wait for it)."""
+        self.close()
+
     def close(self) -> None:
         """Stop the actor. Idempotent."""
         import ray

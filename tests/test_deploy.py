@@ -22,7 +22,7 @@ from layered.deploy_measures import largest_difference, layer_measures, run_meas
 from layered.deploy_run import deploy, start_layers
 from layered.envs import make_env
 from layered.evaluate import evaluate, run_episode
-from layered.combiners import ResidualClip
+from layered.combiners import Gate, ResidualClip
 from layered.layer_process import Fault, LayerFault, LayerProcess, Link, Reply, Request
 from layered.learner_set import build_learners
 from layered.rules import Layer, Rules
@@ -179,13 +179,16 @@ class Scripted:
     def receive(self, timeout_s):
         if self.sent and self.driver.t >= self.sent[0].step + self.lag(self.sent[0].step):
             r = self.sent.pop(0)
-            return Reply(layer_process.PROTOCOL, self.name, r.episode, r.step, np.float32([self.value(r.step)]), 0.0,
-                         r.sent, r.sent)
+            return Reply(layer_process.PROTOCOL, self.name, r.episode, r.step,
+                         np.atleast_1d(np.float32(self.value(r.step))), 0.0, r.sent, r.sent)
         time.sleep(min(timeout_s, 0.001))
         return None
 
+    def abandon(self):
+        self.abandoned = True
+
     def close(self):
-        pass
+        self.closed = True
 
 
 def test_a_timeline_traced_by_hand_late_answers_of_a_delayed_slow_layer_take_effect_when_they_come():
@@ -214,6 +217,46 @@ def test_a_timeline_traced_by_hand_late_answers_of_a_delayed_slow_layer_take_eff
     assert all(not d.missed for key, d in decisions.items() if key != (0, 2))
     m = layer_measures([d for d in driver.decisions if d.layer == 0], scheduled=2)
     assert m["delay_seen"] == {"2": 3, "3": 1} and (m["missed"], m["late"], m["dropped"]) == (1, 1, 0)
+
+
+def test_a_stalled_layer_is_abandoned_without_the_clock_waiting_for_its_process_to_end():
+    """A fault under `hold` stops the layer's process at once (`abandon`), not waiting for it to exit (`close`, up to
+    a second, which cost the healthy layers their deadlines); the deployment closes every end after its episodes."""
+    low, high = np.float32([-2.0]), np.float32([2.0])
+    layers = [Layer("slow", 2, low, high, combiner=ResidualClip()), Layer("fast", 1, low, high, sees=(0,))]
+    ends = {0: Scripted("slow", lambda s: 0.1, lambda s: 0), 1: Scripted("fast", lambda s: 0.01,
+                                                                           lambda s: 10**6 if s >= 3 else 0)}
+    driver = Driver(Rules(layers, [0, 1], low, high), ends, timestep=0.05, settings=Settings(speed=1.0),
+                    notify=lambda _: None)
+    for end in ends.values():
+        end.driver = driver
+    env = gym.wrappers.TimeLimit(make_env("Pendulum-v1"), 10)
+    driver.play(env, 0)
+    env.close()
+    assert 1 in driver.dead and getattr(ends[1], "abandoned", False) and not getattr(ends[1], "closed", False)
+    assert not getattr(ends[0], "abandoned", False)
+
+
+def test_a_stalled_gate_defers_to_the_layers_below_it_from_then_on():
+    """A gate's last output held would keep its commit, and the layers below it out, for good: under `hold` a
+    faulted gate defers instead. Slow: period 2, a gate committing to 0.5, silent from step 4 on; fast: 0.01."""
+    low, high = np.float32([-2.0]), np.float32([2.0])
+    layers = [Layer("slow", 2, np.float32([-2.0, -1.0]), np.float32([2.0, 1.0]), combiner=Gate()),
+              Layer("fast", 1, low, high)]
+    ends = {0: Scripted("slow", lambda s: [0.5, 1.0], lambda s: 10**6 if s >= 4 else 0),
+            1: Scripted("fast", lambda s: 0.01, lambda s: 0)}
+    said = []
+    driver = Driver(Rules(layers, [0, 1], low, high), ends, timestep=0.05, settings=Settings(speed=1.0),
+                    notify=said.append)
+    for end in ends.values():
+        end.driver = driver
+    env = gym.wrappers.TimeLimit(make_env("Pendulum-v1"), 12)
+    episode = driver.play(env, 0)
+    env.close()
+    assert 0 in driver.dead and any("going on with the layers below it, its gate deferring" in line for line in said)
+    np.testing.assert_allclose(episode.actions[:4, 0], 0.5)  # committed: fast not asked
+    assert episode.actions[-1, 0] == pytest.approx(0.01)  # the gate deferring: fast acts
+    assert {d.step for d in driver.decisions if d.layer == 1} >= {10, 11}
 
 
 def test_a_link_slower_than_a_step_delays_answers_without_queueing_them(tmp_path):
