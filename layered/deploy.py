@@ -73,6 +73,7 @@ class Decision:
     sent_wall: float = 0.0
     landed: int | None = None  # the base step from which it took effect
     missed: bool = False  # not answered by its deadline
+    unseen: bool = False  # asked while an output in flight it sees (`sees_in_flight`) was not yet answered
 
     @property
     def latency_s(self) -> float | None:
@@ -162,7 +163,8 @@ class Driver:
             _never_executed(late)  # this decision moves the queue on: the next output in flight is held instead
         if i in self.dead or (layer.learns_from_commits and not self.rules.compose().reached[i][0]):
             return placeholder  # no process to ask, or kept out by a committed gate: the rules put the action there
-        decision = Decision(i, self.t, time.monotonic(), self._deadline(i), sent_wall=time.time())
+        decision = Decision(i, self.t, time.monotonic(), self._deadline(i), sent_wall=time.time(),
+                            unseen=self._unseen(i))
         self.decisions.append(decision)
         self.asked[i, self.episode, self.t] = decision
         self.pending[i].append(decision)
@@ -177,6 +179,18 @@ class Driver:
             return decision.output.reshape(1, -1)
         decision.missed = True
         return placeholder
+
+    def _unseen(self, i: int) -> bool:
+        """Whether layer i is asked while a slower layer's output that it sees acting beside its own (`sees_in_flight`:
+        one landing by the step its output lands at) is not yet answered, so that its view holds a stand-in there
+        where the simulated setting shows the answer: an answer in time for its own deadline can come too late for
+        the faster layers that see it."""
+        layers = self.rules.layers
+        if not layers[i].sees_in_flight:
+            return False
+        lands = self.t + layers[i].delay * layers[i].period
+        return any(d.output is None and d.step + layers[k].delay * layers[k].period <= lands
+                   for k in layers[i].sees for d in self.pending.get(k, ()))
 
     def _age(self, decision: Decision) -> None:
         """Layer's next decision: one older; reaching its delay, it lands now, or is missed if unanswered."""

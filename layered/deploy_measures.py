@@ -46,6 +46,7 @@ def layer_measures(decisions: Sequence[Decision], scheduled: int) -> dict[str, A
         "miss_rate": missed / len(settled) if settled else 0.0,
         "late": late,
         "dropped": missed - late,
+        "asked_unseen": sum(d.unseen for d in decisions),
         "scheduled_delay": scheduled,
         "delay_seen": {str(k): seen[k] for k in sorted(seen)},
         "mean_delay_seen": (sum(k * n for k, n in seen.items()) / sum(seen.values())) if seen else None,

@@ -146,8 +146,8 @@ def _ms(value: float | None) -> str:
 def table(rows: Sequence[dict[str, Any]]) -> str:
     """The measures as a markdown table: one line per setting and layer."""
     lines = ["| setting | return (deployed) | return (eval) | same actions | steps/s | x real time | layer "
-             "| latency median / p99 ms | missed | late | dropped | delay seen, steps:count |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| latency median / p99 ms | missed | late | dropped | delay seen, steps:count | asked unseen |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         first = True
         for name, layer in row["layers"].items():
@@ -158,7 +158,7 @@ def table(rows: Sequence[dict[str, Any]]) -> str:
             seen = " ".join(f"{k}:{n}" for k, n in layer["delay_seen"].items()) or "-"
             lines.append(f"{head}| {name} | {_ms(layer['latency_ms']['median'])} / {_ms(layer['latency_ms']['p99'])} "
                          f"| {layer['missed']} of {layer['settled']} | {layer['late']} | {layer['dropped']} | "
-                         f"{seen} (trained {layer['scheduled_delay']}) |")
+                         f"{seen} (trained {layer['scheduled_delay']}) | {layer['asked_unseen']} |")
             first = False
     return "\n".join(lines)
 

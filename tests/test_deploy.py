@@ -219,6 +219,28 @@ def test_a_timeline_traced_by_hand_late_answers_of_a_delayed_slow_layer_take_eff
     assert m["delay_seen"] == {"2": 3, "3": 1} and (m["missed"], m["late"], m["dropped"]) == (1, 1, 0)
 
 
+def test_a_faster_layer_asked_before_an_answer_it_sees_in_flight_came_is_counted_though_none_was_late():
+    """Mid: period 2, delay 1, its step-0 answer coming at step 2, its deadline: on time. Fast: period 1, delay 1,
+    seeing mid's outputs in flight beside its own: asked at step 1, its output lands at step 2 beside mid's step-0
+    output, whose answer has not come; the simulated setting would have shown it. Counted, not missed."""
+    low, high = np.float32([-2.0]), np.float32([2.0])
+    layers = [Layer("mid", 2, low, high, combiner=ResidualClip(), delay=1),
+              Layer("fast", 1, low, high, sees=(0,), delay=1, sees_in_flight=True)]
+    ends = {0: Scripted("mid", lambda s: 0.1 * (s + 1), lambda s: 2 if s == 0 else 0),
+            1: Scripted("fast", lambda s: 0.01, lambda s: 0)}
+    driver = Driver(Rules(layers, [0, 1], low, high), ends, timestep=0.05, settings=Settings(speed=1.0),
+                    notify=lambda _: None)
+    for end in ends.values():
+        end.driver = driver
+    env = gym.wrappers.TimeLimit(make_env("Pendulum-v1"), 8)
+    driver.play(env, 0)
+    env.close()
+    assert [d.step for d in driver.decisions if d.unseen] == [1] and driver.decisions[0].layer == 0
+    mid = layer_measures([d for d in driver.decisions if d.layer == 0], scheduled=2)
+    fast = layer_measures([d for d in driver.decisions if d.layer == 1], scheduled=1)
+    assert (mid["missed"], mid["asked_unseen"], fast["missed"], fast["asked_unseen"]) == (0, 0, 0, 1)
+
+
 def test_a_stalled_layer_is_abandoned_without_the_clock_waiting_for_its_process_to_end():
     """A fault under `hold` stops the layer's process at once (`abandon`), not waiting for it to exit (`close`, up to
     a second, which cost the healthy layers their deadlines); the deployment closes every end after its episodes."""
