@@ -112,7 +112,7 @@ def test_misuse_of_the_agent_view_is_one_clear_error_naming_the_layer():
         env.step(np.array([np.nan], np.float32))
     with pytest.raises(ValueError, match="non-finite action \\[inf\\]"):
         env.step(np.array([np.inf], np.float32))
-    for name in env.agent_iter():
+    for _ in env.agent_iter():
         _, _, term, trunc, _ = env.last()
         env.step(None if term or trunc else np.zeros(1, np.float32))
     with pytest.raises(RuntimeError, match="the episode has ended: reset the env before stepping it again"):
