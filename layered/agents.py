@@ -151,8 +151,9 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         obs = self._obs
         self._obs, reward, terminated, truncated, _ = self.base.step(composition.action)
         rewards = self.stack.layer_rewards(float(reward), composition)
-        for i, r in rewards.items():
-            self.rewards[self.stack.layers[i].name] += r
+        for i, r in rewards.items():  # (a layer that has not decided yet this episode has no reward to collect)
+            if self.stack.decisions[i] is not None:
+                self.rewards[self.stack.layers[i].name] += r
         self.stack.tick()
         self.stack.accrue(rewards, self._obs, ended=terminated or truncated)
         if self.keep_trace or frame is not None:

@@ -46,6 +46,9 @@ def _check_layers(recipe: Recipe) -> list[tuple[str, str]]:
         if layer.sees_in_flight and not (layer.delay and set(layer.sees) - {"obs"}):
             problems.append((f"{where}.sees_in_flight", "it shows the slower layers in `sees` beside the layer's "
                              "outputs in flight: it needs a delay and a slower layer in `sees`"))
+        if layer.max_repeat > 1 and layer.delay:
+            problems.append((f"{where}.max_repeat", "a layer that chooses how long to hold its output takes no delay: "
+                             "its count would hold the output already in flight, not the one it came with"))
         if layer.sees_executed and not layer.delay:
             problems.append((f"{where}.sees_executed", "without a delay a layer has no outputs in flight to see: "
                              "remove the key, or give the layer a delay"))

@@ -61,6 +61,17 @@ def test_only_due_layers_are_yielded_and_a_committed_gate_silences_the_fast_laye
     assert order[:5] == [(0, "l0"), (4, "l0"), (4, "l1"), (5, "l1"), (6, "l1")]
 
 
+def test_a_layer_first_asked_after_a_gate_committed_has_no_reward_from_before_its_first_decision():
+    env = make_aec_env(stack_recipe([4, 1], "gate"), seed=0)
+    commit, defer = np.array([0.5, 1.0], np.float32), np.array([0.5, -1.0], np.float32)
+    firsts = {}
+    for name in env.agent_iter(max_iter=4):
+        _, reward, _, _, info = env.last()
+        firsts.setdefault(name, (env.stack.t, reward, "transition" in info))
+        env.step((commit if env.stack.t < 4 else defer) if name == "l0" else np.array([0.1], np.float32))
+    assert firsts == {"l0": (0, 0.0, False), "l1": (4, 0.0, False)}  # steps 0-3 were the gate's alone
+
+
 def test_episode_end_reports_truncation_to_every_layer_then_removes_them():
     env = make_aec_env(stack_recipe([4, 2, 1]), seed=0)
     finals = {}

@@ -65,6 +65,8 @@ CASES = {
                                          "layers[1].eval_threshold: it thresholds the contributions"),
     "a threshold on a gate": (["train", str(TLA_O), "layers.slow.eval_threshold=0.5"],
                               "thresholds none (its combiner is 'gate')"),
+    "a repeating layer with a delay": (["train", str(RECIPES / "pendulum" / "temporl.toml"), "layers.fast.delay=1"],
+                                       "layers[0].max_repeat: a layer that chooses how long to hold its output"),
     "a seed twice": (["train", str(TLA_C), "--seed", "3", "train.seed=4"],
                      "give the seed once: --seed or train.seed=4"),
     "a group's seeds and a seed": (["train", str(TLA_C), "--seeds", "2", "train.seed=4"],
