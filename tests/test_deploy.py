@@ -191,6 +191,20 @@ class Scripted:
         self.closed = True
 
 
+def play_scripted(layers, ends, steps, notify=lambda _: None):
+    """One episode of `steps` base steps of Pendulum driven by `Scripted` ends at real time (base steps of 50 ms:
+    long enough that the machine's own delays do not make an answer miss its step); the driver and the episode."""
+    low, high = np.float32([-2.0]), np.float32([2.0])
+    driver = Driver(Rules(layers, [0, 1], low, high), ends, timestep=0.05, settings=Settings(speed=1.0),
+                    notify=notify)
+    for end in ends.values():
+        end.driver = driver
+    env = gym.wrappers.TimeLimit(make_env("Pendulum-v1"), steps)
+    episode = driver.play(env, 0)
+    env.close()
+    return driver, episode
+
+
 def test_a_timeline_traced_by_hand_late_answers_of_a_delayed_slow_layer_take_effect_when_they_come():
     """Slow: period 2, delay 1, answers 0.1 x (step + 1), the one for step 2 three steps late. Fast:
     period 1, no delay, answers 0.01 x (step + 1) at once. Slow's contribution, step by step: 0 and 0
@@ -199,16 +213,9 @@ def test_a_timeline_traced_by_hand_late_answers_of_a_delayed_slow_layer_take_eff
     late, it takes effect at once), 0.5 from step 6 (step 4's answer, on time) ..."""
     low, high = np.float32([-2.0]), np.float32([2.0])
     layers = [Layer("slow", 2, low, high, combiner=ResidualClip(), delay=1), Layer("fast", 1, low, high, sees=(0,))]
-    rules = Rules(layers, [0, 1], low, high)
     ends = {0: Scripted("slow", lambda s: 0.1 * (s + 1), lambda s: 3 if s == 2 else 0),
             1: Scripted("fast", lambda s: 0.01 * (s + 1), lambda s: 0)}
-    # base steps of 50 ms: long enough that the machine's own delays do not make an answer miss its step
-    driver = Driver(rules, ends, timestep=0.05, settings=Settings(speed=1.0), notify=lambda _: None)
-    for end in ends.values():
-        end.driver = driver
-    env = gym.wrappers.TimeLimit(make_env("Pendulum-v1"), 10)
-    episode = driver.play(env, 0)
-    env.close()
+    driver, episode = play_scripted(layers, ends, 10)
     slow = [0, 0, 0.1, 0.1, 0.1, 0.3, 0.5, 0.5, 0.7, 0.7]
     np.testing.assert_allclose(episode.actions[:, 0], [s + 0.01 * (t + 1) for t, s in enumerate(slow)], atol=1e-6)
     decisions = {(d.layer, d.step): d for d in driver.decisions}
@@ -228,13 +235,7 @@ def test_a_faster_layer_asked_before_an_answer_it_sees_in_flight_came_is_counted
               Layer("fast", 1, low, high, sees=(0,), delay=1, sees_in_flight=True)]
     ends = {0: Scripted("mid", lambda s: 0.1 * (s + 1), lambda s: 2 if s == 0 else 0),
             1: Scripted("fast", lambda s: 0.01, lambda s: 0)}
-    driver = Driver(Rules(layers, [0, 1], low, high), ends, timestep=0.05, settings=Settings(speed=1.0),
-                    notify=lambda _: None)
-    for end in ends.values():
-        end.driver = driver
-    env = gym.wrappers.TimeLimit(make_env("Pendulum-v1"), 8)
-    driver.play(env, 0)
-    env.close()
+    driver, _ = play_scripted(layers, ends, 8)
     assert [d.step for d in driver.decisions if d.unseen] == [1] and driver.decisions[0].layer == 0
     mid = layer_measures([d for d in driver.decisions if d.layer == 0], scheduled=2)
     fast = layer_measures([d for d in driver.decisions if d.layer == 1], scheduled=1)
@@ -248,13 +249,7 @@ def test_a_stalled_layer_is_abandoned_without_the_clock_waiting_for_its_process_
     layers = [Layer("slow", 2, low, high, combiner=ResidualClip()), Layer("fast", 1, low, high, sees=(0,))]
     ends = {0: Scripted("slow", lambda s: 0.1, lambda s: 0), 1: Scripted("fast", lambda s: 0.01,
                                                                            lambda s: 10**6 if s >= 3 else 0)}
-    driver = Driver(Rules(layers, [0, 1], low, high), ends, timestep=0.05, settings=Settings(speed=1.0),
-                    notify=lambda _: None)
-    for end in ends.values():
-        end.driver = driver
-    env = gym.wrappers.TimeLimit(make_env("Pendulum-v1"), 10)
-    driver.play(env, 0)
-    env.close()
+    driver, _ = play_scripted(layers, ends, 10)
     assert 1 in driver.dead and getattr(ends[1], "abandoned", False) and not getattr(ends[1], "closed", False)
     assert not getattr(ends[0], "abandoned", False)
 
@@ -268,13 +263,7 @@ def test_a_stalled_gate_defers_to_the_layers_below_it_from_then_on():
     ends = {0: Scripted("slow", lambda s: [0.5, 1.0], lambda s: 10**6 if s >= 4 else 0),
             1: Scripted("fast", lambda s: 0.01, lambda s: 0)}
     said = []
-    driver = Driver(Rules(layers, [0, 1], low, high), ends, timestep=0.05, settings=Settings(speed=1.0),
-                    notify=said.append)
-    for end in ends.values():
-        end.driver = driver
-    env = gym.wrappers.TimeLimit(make_env("Pendulum-v1"), 12)
-    episode = driver.play(env, 0)
-    env.close()
+    driver, episode = play_scripted(layers, ends, 12, said.append)
     assert 0 in driver.dead and any("going on with the layers below it, its gate deferring" in line for line in said)
     np.testing.assert_allclose(episode.actions[:4, 0], 0.5)  # committed: fast not asked
     assert episode.actions[-1, 0] == pytest.approx(0.01)  # the gate deferring: fast acts
