@@ -14,14 +14,15 @@ if TYPE_CHECKING:
     from layered.errors import BadInput, Diverged
     from layered.plugins import load_plugin
     from layered.recipe import Recipe, RecipeError, load_recipe
+    from layered.run_evals import eval_run
     from layered.runs import resume, train
 
 _HOMES = {"LayeredEnv": "layered.agents", "make_aec_env": "layered.agents", "BadInput": "layered.errors",
           "Diverged": "layered.errors", "load_plugin": "layered.plugins",
           "Recipe": "layered.recipe", "RecipeError": "layered.recipe", "load_recipe": "layered.recipe",
-          "resume": "layered.runs", "train": "layered.runs"}
-__all__ = ["BadInput", "Diverged", "LayeredEnv", "Recipe", "RecipeError", "load_plugin", "load_recipe", "make_aec_env",
-           "resume", "train"]
+          "resume": "layered.runs", "train": "layered.runs", "eval_run": "layered.run_evals"}
+__all__ = ["BadInput", "Diverged", "LayeredEnv", "Recipe", "RecipeError", "eval_run", "load_plugin", "load_recipe",
+           "make_aec_env", "resume", "train"]
 __version__ = "0.1.0"
 
 

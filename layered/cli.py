@@ -458,13 +458,9 @@ def _write_evaluation(args: argparse.Namespace, run: Any, episodes: int, result:
 def _evaluate_once(args: argparse.Namespace, run: Any, episodes: int) -> None:
     """The run's evaluation over `episodes` episodes, played side by side as its training's evaluations are;
     with --plot, the last of them played again through the agent view, for its trace."""
-    from layered.group_eval import close_evaluator, evaluate_run, open_run_evaluator
+    from layered.run_evals import evaluate_trained
 
-    evaluator = open_run_evaluator(run.recipe, run.active, episodes, args.threshold)
-    try:
-        result = evaluate_run(evaluator, run.learners, episodes, run.seed, progress=True)
-    finally:
-        close_evaluator(evaluator)
+    result = evaluate_trained(run, episodes, args.threshold, progress=True)
     row, out = _write_evaluation(args, run, episodes, result)
     print(results_table([row]))
     print(f"written to {out}")

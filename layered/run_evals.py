@@ -155,6 +155,30 @@ def _latest_weights(recipe: Recipe, at: Standing) -> dict[str, dict[str, Any]]:
     return seed_weights(recipe, at.latest, at.row, at.rows)
 
 
+def evaluate_trained(run: TrainedRun, episodes: int | None = None, threshold: float | None = None,
+                     progress: bool = False) -> Evaluation:
+    """`run` evaluated over `episodes` episodes (default: its count), side by side as its training's evaluations
+    are, at the recipe's thresholds or `threshold`: what `layered eval RUN` measures."""
+    from layered.group_eval import close_evaluator, evaluate_run, open_run_evaluator
+
+    episodes = episodes or run.episodes
+    evaluator = open_run_evaluator(run.recipe, run.active, episodes, threshold)
+    try:
+        return evaluate_run(evaluator, run.learners, episodes, run.seed, progress=progress)
+    finally:
+        close_evaluator(evaluator)
+
+
+def eval_run(run_dir: str | Path, episodes: int | None = None, weights: str | None = None,
+             threshold: float | None = None, fresh: bool = False) -> Evaluation:
+    """`layered eval RUN` from Python: the run in `run_dir` (finished, or as it stands at its last checkpoint) with
+    its `final` or `best` weights (default: its train.select), over `episodes` of its evaluation's episodes or,
+    with `fresh`, of the fresh ones its phases ended on; the measures (`Evaluation`: return, repetition, decisions,
+    ...). Nothing is written."""
+    run = replace(open_run(Path(run_dir), weights, unfinished=True), fresh=fresh)
+    return evaluate_trained(run, episodes, threshold)
+
+
 def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None) -> list[dict[str, Any]]:
     """One evaluation per threshold (a fraction of the maximum action), its episodes side by side: the paper's
     return and action frequency against the threshold (Fig. 2). Writes eval/`sweep_file(thresholds)`; its rows."""

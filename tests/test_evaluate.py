@@ -101,3 +101,23 @@ def test_a_gallery_draws_from_layered_evals_episodes_at_its_threshold(threshold)
     assert len(shots) == min(4, acted) and len({(episode, step) for episode, step, _, _ in shots}) == len(shots)
     for episode, step, frame, record in shots:
         assert "fast" in record.acted and frame.ndim == 3 and 0 <= episode < 3 and 0 <= step < 200
+
+
+def test_eval_run_from_python_measures_what_layered_eval_writes(tmp_path):
+    import json
+
+    import layered
+    from layered.cli import main
+
+    recipe = load_recipe(ROOT / "recipes/pendulum/tla-c.toml", [*SMALL, "learner.batch_size=16", "train.warmup=20",
+                                                                 "eval.every=100", "eval.episodes=2",
+                                                                 "eval.fresh_episodes=2"])
+    layered.train(recipe, tmp_path / "run", max_steps=100, progress=False)
+    assert main(["eval", str(tmp_path / "run"), "--episodes", "3", "--threshold", "0.1"]) == 0
+    written = json.loads((tmp_path / "run" / "eval" / "threshold-0.1-episodes-3.json").read_text())
+    measured = layered.eval_run(tmp_path / "run", episodes=3, threshold=0.1)
+    assert (measured.return_mean, measured.repetition, measured.decisions) == (
+        written["return_mean"], written["repetition"], written["decisions"])
+    ended = json.loads((tmp_path / "run" / "results.json").read_text())["phases"][-1]
+    fresh = layered.eval_run(tmp_path / "run", weights="final", fresh=True)
+    assert fresh.return_mean == ended["fresh_final_return_mean"]
