@@ -20,9 +20,9 @@ DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]  # the thresholds of the 
 SWEEP_FILE = "threshold-sweep.csv"
 """A run's threshold sweep on `DEFAULT_SWEEP`, in its eval/ folder: the one Fig. 2 is drawn from."""
 LEGEND_WIDTH = 44
-TITLE_WIDTH = 64  # characters of a figure's title per line: a setup named by its overrides can be long
 """Characters per line of a setup's name in a figure's legend, which wraps longer names (settings, paths) so that
 the legend stays within its plot."""
+TITLE_WIDTH = 64  # characters of a figure's title per line: a setup named by its overrides can be long
 
 
 def _activity(row: dict[str, Any], prefix: str, fmt: str = "{:.0%}") -> str:

@@ -8,6 +8,7 @@ import json
 import re
 import sys
 import tomllib
+from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -364,7 +365,7 @@ def group(runs: Iterable[Run]) -> list[Setup]:
         by_key.setdefault((run.env, run.method), []).append(run)
     setups = [Setup(env, rs[0].label, tuple(sorted(rs, key=lambda r: r.seed))) for (env, _), rs in by_key.items()]
     for s in setups:
-        if twice := sorted({r.seed for r in s.runs if [q.seed for q in s.runs].count(r.seed) > 1}):
+        if twice := sorted(seed for seed, runs in Counter(r.seed for r in s.runs).items() if runs > 1):
             paths = ", ".join(str(r.path) for r in s.runs if r.seed == twice[0])
             several = len(twice) > 1
             print(f"layered: warning: {s.env} {s.method}: seed{'s' * several} {', '.join(map(str, twice))} "
