@@ -357,12 +357,13 @@ def _resume_group(args: argparse.Namespace, directory: Path) -> int:
 def _threads_as_trained(args: argparse.Namespace, info: RunInfo) -> None:
     """Compute with the torch threads the run trained with where `--threads` does not say (at most this machine's
     cores): the products of an evaluation sum in an order that depends on them, and so do its numbers' last digits."""
-    if args.threads is None and info.threads:
+    from layered.cores import trained_threads
+
+    threads = trained_threads(info.threads)
+    if args.threads is None and threads is not None:
         import torch
 
-        from layered.cores import usable_cores
-
-        torch.set_num_threads(min(info.threads, usable_cores()))
+        torch.set_num_threads(threads)
 
 
 def _finished(out: Path) -> int:

@@ -37,3 +37,24 @@ def cores_given(cores: int | None) -> Iterator[None]:
         yield
     finally:
         _SHARE = before
+
+
+def trained_threads(threads: int | None) -> int | None:
+    """The torch threads to compute with to repeat a run that trained with `threads`: as many, at most this process's
+    cores (None where the run did not record them)."""
+    return None if not threads else min(threads, usable_cores())
+
+
+@contextmanager
+def torch_threads(threads: int | None) -> Iterator[None]:
+    """Within it torch computes with `threads` (None: as before), and as before after it: the products of an
+    evaluation sum in an order that depends on the thread count, and so do the last digits of its numbers."""
+    import torch
+
+    before = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

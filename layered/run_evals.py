@@ -170,13 +170,18 @@ def evaluate_trained(run: TrainedRun, episodes: int | None = None, threshold: fl
 
 
 def eval_run(run_dir: str | Path, episodes: int | None = None, weights: str | None = None,
-             threshold: float | None = None, fresh: bool = False) -> Evaluation:
+             threshold: float | None = None, fresh: bool = False, threads: int | None = None) -> Evaluation:
     """`layered eval RUN` from Python: the run in `run_dir` (finished, or as it stands at its last checkpoint) with
     its `final` or `best` weights (default: its train.select), over `episodes` of its evaluation's episodes or,
-    with `fresh`, of the fresh ones its phases ended on; the measures (`Evaluation`: return, repetition, decisions,
-    ...). Nothing is written."""
+    with `fresh`, of the fresh ones its phases ended on, computed with `threads` torch threads (default: those it
+    trained with, as the command does); the measures (`Evaluation`: return, repetition, decisions, ...). Nothing
+    is written, and the process's thread count is as before afterwards."""
+    from layered.cores import torch_threads, trained_threads
+    from layered.rundir import read_run_info
+
     run = replace(open_run(Path(run_dir), weights, unfinished=True), fresh=fresh)
-    return evaluate_trained(run, episodes, threshold)
+    with torch_threads(threads or trained_threads(read_run_info(Path(run_dir)).threads)):
+        return evaluate_trained(run, episodes, threshold)
 
 
 def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None) -> list[dict[str, Any]]:

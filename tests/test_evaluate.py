@@ -121,3 +121,26 @@ def test_eval_run_from_python_measures_what_layered_eval_writes(tmp_path):
     ended = json.loads((tmp_path / "run" / "results.json").read_text())["phases"][-1]
     fresh = layered.eval_run(tmp_path / "run", weights="final", fresh=True)
     assert fresh.return_mean == ended["fresh_final_return_mean"]
+
+
+def test_eval_run_computes_with_the_threads_the_run_trained_with(tmp_path, monkeypatch):
+    import torch
+
+    import layered
+    from layered import run_evals
+
+    recipe = load_recipe(ROOT / "recipes/pendulum/td3.toml", [*SMALL, "learner.batch_size=16", "train.warmup=20",
+                                                              "eval.every=100", "eval.episodes=1"])
+    before = torch.get_num_threads()
+    seen = []
+    monkeypatch.setattr(run_evals, "evaluate_trained", lambda *args: seen.append(torch.get_num_threads()))
+    try:
+        torch.set_num_threads(1)
+        layered.train(recipe, tmp_path / "run", max_steps=50, progress=False)
+        torch.set_num_threads(2)
+        layered.eval_run(tmp_path / "run")
+        assert seen == [1] and torch.get_num_threads() == 2  # as trained within, as before after
+        layered.eval_run(tmp_path / "run", threads=2)
+        assert seen == [1, 2]
+    finally:
+        torch.set_num_threads(before)
