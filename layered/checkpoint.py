@@ -9,6 +9,7 @@ one costs one checkpoint interval, not the run. Files of format 2 (no header, no
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import io
 import os
@@ -66,7 +67,7 @@ def save_checkpoint(path: Path, layer: str, state: dict[str, Any], keep_previous
     With `keep_previous` the file it replaces is kept as `previous(path)`.
     """
     body = io.BytesIO()
-    torch.save({"format_version": FORMAT_VERSION, "layer": layer, "state": state}, body)
+    torch.save(canonical({"format_version": FORMAT_VERSION, "layer": layer, "state": state}), body)
     digest = hashlib.sha256(body.getbuffer()).hexdigest()
     header = b"%s %d %s\n" % (MAGIC, FORMAT_VERSION, digest.encode())
 
@@ -76,6 +77,33 @@ def save_checkpoint(path: Path, layer: str, state: dict[str, Any], keep_previous
 
     _write_atomically(path, write, keep_previous)
     return digest
+
+
+def canonical(value: Any, seen: dict[int, Any] | None = None) -> Any:
+    """`value` with every string interned, its dicts, lists and tuples rebuilt around them (a dict's attributes too,
+    as a state_dict's `_metadata`; what is shared stays shared): pickle writes a string met before as a reference by
+    the object's identity, so equal states were written in other bytes where one had been read back from a file (a
+    resumed group's best weights) and the other built in memory."""
+    if isinstance(value, str):
+        return sys.intern(value)
+    if not isinstance(value, dict | list | tuple):
+        return value
+    seen = {} if seen is None else seen
+    if id(value) in seen:
+        return seen[id(value)]
+    if isinstance(value, dict):
+        rebuilt = copy.copy(value)  # (keeps a subclass's own state, as a defaultdict's factory)
+        rebuilt.clear()
+        seen[id(value)] = rebuilt
+        rebuilt.update((canonical(k, seen), canonical(v, seen)) for k, v in value.items())
+        for name, attribute in getattr(value, "__dict__", {}).items():
+            setattr(rebuilt, name, canonical(attribute, seen))
+    elif type(value) in (list, tuple):
+        rebuilt = type(value)(canonical(v, seen) for v in value)
+    else:  # (a named tuple or a list of another kind: as it is)
+        rebuilt = value
+    seen[id(value)] = rebuilt
+    return rebuilt
 
 
 def verified_digest(path: Path) -> str:

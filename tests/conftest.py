@@ -86,7 +86,7 @@ def layered_here(*args: object) -> subprocess.CompletedProcess:
 
 
 def assert_same_run(a: Path, b: Path) -> None:
-    """Byte-identical logs and results, and identical tensors in every layer checkpoint."""
+    """Byte-identical logs, results and layer checkpoints (their tensors compared too, to say which differs)."""
     for name in ("metrics.csv", "episodes.csv", "results.json"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
     layers = sorted(p.name for p in (a / "checkpoints").glob("*.pt") if not p.name.startswith("run"))
@@ -95,6 +95,7 @@ def assert_same_run(a: Path, b: Path) -> None:
         layer = name.split(".")[0]
         x, y = (load_checkpoint(d / "checkpoints" / name, layer) for d in (a, b))
         assert_same_state(x, y, name)
+        assert (a / "checkpoints" / name).read_bytes() == (b / "checkpoints" / name).read_bytes(), name
 
 
 def assert_same_state(x, y, where):
