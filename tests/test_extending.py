@@ -38,6 +38,8 @@ def test_each_example_plugin_trains_from_its_recipe_and_is_needed(plugin, recipe
     assert proc.returncode == 0, proc.stderr
     assert json.loads((out / "run.json").read_text())["plugins"] == [str((EXAMPLES / plugin).resolve())]
     assert cli("eval", out, "--episodes", 1).returncode == 0  # the run remembers its plugin
+    report = cli("report", out, "--out", tmp_path / "report")  # (and the evaluations behind its figures find it)
+    assert report.returncode == 0, report.stderr
     without = layered_here("train", EXAMPLES / recipe, "--out", tmp_path / "other")
     assert without.returncode == 2 and name in without.stderr
 
