@@ -617,7 +617,8 @@ def _report(args: argparse.Namespace) -> int:
     setups = group(runs)
     out = args.out or Path("runs") / f"report-{time.strftime('%Y%m%d-%H%M%S')}"
     print(write_report(setups, out))
-    print(f"report directory: {out} (report.md, summary.csv, comparisons.csv, across-envs.csv, curves.png)")
+    print(f"report directory: {out} (report.md, summary.csv, seeds.csv, comparisons.csv, across-envs.csv, curves.csv, "
+          "curves.png and the figures report.md shows)")
     return 0
 
 

@@ -50,13 +50,14 @@ class Progress:
 def pace(steps: int, seconds: float, left: int | None, seeds: int = 1, later: int = 0) -> str:
     """", R steps/s" for `steps` taken in `seconds` (by each of `seeds` seeds: ", R steps/s per seed (R x seeds
     in all)"), and ", about T left" for `left` more steps at that rate (nothing for no steps: a phase's first
-    line; no time left for `left` None or 0), "in this phase, then N more" where `later` phases follow."""
+    line; no time left for `left` None, 0 or below, a phase past its budget by a period's last steps), "in this
+    phase, then N more" where `later` phases follow."""
     if steps <= 0 or seconds <= 0:
         return ""
     rate = steps / seconds
     each = f"{rate:.0f} steps/s" + (f" per seed ({rate * seeds:.0f} in all)" if seeds > 1 else "")
     after = f" in this phase, then {count(later, 'more phase')}" if later else ""
-    return f", {each}" + (f", about {duration(left / rate)} left{after}" if left else "")
+    return f", {each}" + (f", about {duration(left / rate)} left{after}" if left and left > 0 else "")
 
 
 def count(n: int, noun: str) -> str:

@@ -19,6 +19,7 @@ def test_the_pace_is_the_rate_since_the_last_line_and_the_time_left_at_it():
     # 5000 steps in 80 s: 62.5 steps/s; 70 000 left at that rate: 1120 s, 18.7 min
     assert pace(5000, 80.0, 70_000) == ", 62 steps/s, about 19 min left"
     assert pace(5000, 80.0, 0) == ", 62 steps/s"  # the phase's last line
+    assert pace(5000, 80.0, -2) == ", 62 steps/s"  # a phase that ran past its budget to end a slow layer's period
     assert pace(5000, 80.0, None) == ", 62 steps/s"  # no estimate asked for
     assert pace(0, 0.0, 100_000) == ""  # its first
     # a group of 10 seeds, each taking the 5000 steps: 62.5 per seed, 625 in all; the time left is the seeds'
