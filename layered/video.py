@@ -115,7 +115,8 @@ class StripVideo:
 
 def write_videos(recipe: Recipe, learners: Mapping[str, Learner], active: list[str], out_dir: Path, episodes: int,
                  seed: int, threshold: float | None = None) -> list[tuple[Path, float]]:
-    """One MP4 per evaluation episode (seeded as `layered eval` seeds them), with each episode's return."""
+    """One MP4 per evaluation episode (seeded as `layered eval` seeds them), with each episode's return: episode-K.mp4
+    at the recipe's thresholds, threshold-T-episode-K.mp4 at another, so that one never replaces the other."""
     env = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold, keep_trace=True,
                        render_mode="rgb_array")
     if np.ndim(env.render()) != 3:
@@ -125,7 +126,8 @@ def write_videos(recipe: Recipe, learners: Mapping[str, Learner], active: list[s
     fps = int(env.base.metadata.get("render_fps") or 30)
     written = []
     for k, episode_seed in enumerate(episode_seeds(seed, episodes)):
-        video = StripVideo(out_dir / f"episode-{k}.mp4", env.possible_agents, low, high, fps)
+        name = f"episode-{k}.mp4" if threshold is None else f"threshold-{threshold}-episode-{k}.mp4"
+        video = StripVideo(out_dir / name, env.possible_agents, low, high, fps)
         env.watcher = video
         try:
             measures = run_episode(env, learners, episode_seed)

@@ -31,7 +31,9 @@ def test_video_per_episode_with_the_layer_strip(family, tmp_path):
     learners = build_learners(recipe)
     active = list(phases_of(recipe)[-1].active)
     written = write_videos(recipe, learners, active, tmp_path, episodes=episodes, seed=3, threshold=0.0)
-    assert [p.name for p, _ in written] == [f"episode-{k}.mp4" for k in range(episodes)]
+    assert [p.name for p, _ in written] == [f"threshold-0.0-episode-{k}.mp4" for k in range(episodes)]
+    at_recipe = write_videos(recipe, learners, active, tmp_path, episodes=1, seed=3)  # (beside them, not over them)
+    assert [p.name for p, _ in at_recipe] == ["episode-0.mp4"] and written[0][0].exists()
     reader = imageio.get_reader(written[0][0])
     frames = [f for f in reader]
     reader.close()
