@@ -1,5 +1,5 @@
 """A combiner plugin: residual-clip whose lower layers cannot make corrections smaller than 5%
-of the action range, in training as well as at evaluation."""
+of the action half-range (the largest action), in training as well as at evaluation."""
 
 import numpy as np
 
