@@ -41,7 +41,8 @@ def load_plugin(spec: str) -> str:
     try:
         importlib.import_module(spec)
     except ImportError as e:
-        raise PluginError(f"plugin {spec}: {e}") from e
+        raise PluginError(f"plugin {spec}: {e} (a plugin named as a module is imported as Python imports it: "
+                          "installed, or its folder on PYTHONPATH; a file is named by its path ending in .py)") from e
     return spec
 
 

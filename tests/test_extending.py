@@ -47,6 +47,8 @@ def test_each_example_plugin_trains_from_its_recipe_and_is_needed(plugin, recipe
 def test_a_missing_plugin_is_a_clear_error(tmp_path):
     proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", tmp_path / "nope.py")
     assert proc.returncode == 2 and "no such file" in proc.stderr and "Traceback" not in proc.stderr
+    module = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", "nopackage.combiners")
+    assert module.returncode == 2 and "No module named 'nopackage'" in module.stderr and "PYTHONPATH" in module.stderr
 
 
 def test_the_deadband_combiner_drops_small_corrections_in_training_too():
