@@ -711,6 +711,11 @@ def run(args: argparse.Namespace) -> int:
         with cores_given(getattr(args, "threads", None) if evaluating else None):
             return COMMANDS[args.command](args)
     except (BadInput, LayerFault) as e:  # an input it cannot use; a layer's process that died or stalled
+        from layered.recipe import recipe_label
+        from layered.schema import RecipeError
+
+        if isinstance(e, RecipeError) and args.command == "train":  # (checked where the recipe's file is not known)
+            e = e.named(recipe_label(args.recipe, args.overrides))
         for line in str(e).splitlines():
             _fail(line)
         return EXIT_BAD_INPUT

@@ -133,7 +133,7 @@ def check_group(recipe: Recipe) -> None:
         out.append(("env.id", f"{problem}; a group checkpoints its environments mid-episode (train its seeds "
                               "with `layered sweep`)"))
     if out:
-        raise RecipeError("recipe", out)
+        raise RecipeError(RecipeError.UNNAMED, out)
 
 
 @functools.cache  # asked by the command line and again by train_group

@@ -78,7 +78,7 @@ def start_from_weights(recipe: Recipe, learners: dict[str, Learner]) -> None:
             problems.append((f"layers[{i}].weights", f"{path}: does not fit layer {layer.name!r}'s "
                              f"learner ({str(e).strip().splitlines()[0]})"))
     if problems:
-        raise RecipeError("recipe", problems)
+        raise RecipeError(RecipeError.UNNAMED, problems)
 
 
 def precisions(learners: Mapping[str, Learner]) -> dict[str, str]:

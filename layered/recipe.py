@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import difflib
 import tomllib
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -46,16 +46,12 @@ def load_recipe(source: str | Path | Mapping[str, Any], overrides: Iterable[str]
 
     Raises RecipeError, whose lines each name the file, the key and what was expected.
     """
-    if isinstance(source, Mapping):
-        label, data = "<recipe>", _deep_copy(dict(source))
-    else:
-        label, data = str(source), read_recipe_file(recipe_path(source))
     overrides = list(overrides)
+    label = recipe_label(source, overrides)
+    data = _deep_copy(dict(source)) if isinstance(source, Mapping) else read_recipe_file(recipe_path(source))
     for override in overrides:
         apply_override(data, override)
     _absolute_weights(data, Path.cwd())  # paths given on the command line are relative to where it runs
-    if overrides:
-        label += " (with command-line overrides)"
     try:
         recipe = Recipe.model_validate(data)
     except ValidationError as e:
@@ -65,6 +61,12 @@ def load_recipe(source: str | Path | Mapping[str, Any], overrides: Iterable[str]
     if problems:
         raise RecipeError(label, problems)
     return recipe
+
+
+def recipe_label(source: str | Path | Mapping[str, Any], overrides: Sequence[str] = ()) -> str:
+    """How errors name a recipe: its file (`<recipe>` for a table), and whether the command line changed it."""
+    label = "<recipe>" if isinstance(source, Mapping) else str(source)
+    return label + (" (with command-line overrides)" if overrides else "")
 
 
 def _resolve_periods(recipe: Recipe) -> tuple[Recipe, list[tuple[str, str]]]:

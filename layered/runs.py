@@ -125,7 +125,7 @@ def train(
     out = Path(out_dir)
     unavailable = unavailable_settings(recipe)
     if unavailable:
-        raise RecipeError("recipe", unavailable)
+        raise RecipeError(RecipeError.UNNAMED, unavailable)
     for warning in training_warnings(recipe, max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
     info = RunInfo(label or out.name, max_steps, tuple(plugins), threads=torch.get_num_threads())

@@ -19,10 +19,18 @@ class RecipeError(BadInput, ValueError):
     """A recipe that cannot be used; each line names the source, the key (None: the file as a whole) and
     what was expected."""
 
+    UNNAMED = "recipe"
+    """The source of a recipe checked where its file is not known (a built recipe's weights, settings)."""
+
     def __init__(self, source: str, problems: Iterable[tuple[str | None, str]]) -> None:
+        self.source, self.problems = source, list(problems)
         self.lines = [f"{source}: {message}" if key is None else f"{source}: {key or '(top level)'}: {message}"
-                      for key, message in problems]
+                      for key, message in self.problems]
         super().__init__("\n".join(self.lines))
+
+    def named(self, source: str) -> RecipeError:
+        """The same problems named by `source` (the file and how it was changed), where they had no source."""
+        return RecipeError(source, self.problems) if self.source == self.UNNAMED else self
 
 
 class Section(BaseModel):

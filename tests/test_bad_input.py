@@ -54,6 +54,8 @@ CASES = {
                                                     "layers[1].action_penalty_from"),
     "zero updates per decision": (["train", str(TLA_C), "layers.fast.updates=0"], "layers[1].updates"),
     "unknown plugin": (["train", str(TLA_C), "--plugin", "{tmp}/nope.py"], "plugin"),
+    "start weights that are not there": (["train", str(TLA_C), "layers.slow.weights={tmp}/nope.pt"],
+                                         "tla-c.toml (with command-line overrides): layers[0].weights: "),
     "zero steps": (["train", str(TLA_C), "--steps", "0"], "--steps: must be positive"),
     "steps not a number": (["train", str(TLA_C), "--steps", "lots"], "--steps: expected a whole number"),
     "zero threads": (["train", str(TLA_C), "--threads", "0"], "--threads: must be positive"),
@@ -120,7 +122,8 @@ def test_bad_input_exits_2_with_one_line_and_writes_nothing(case, tmp_path, caps
         code = e.code
     err = capsys.readouterr().err
     assert code == 2, err
-    assert says in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    lines = [line for line in err.strip().splitlines() if not line.startswith("training ")]  # (what it was to start)
+    assert says in err and len(lines) == 1 and lines[0].startswith("layered: error: ") and "Traceback" not in err, err
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
 
 
