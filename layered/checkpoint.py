@@ -91,6 +91,7 @@ def canonical(value: Any, seen: dict[int, Any] | None = None) -> Any:
     seen = {} if seen is None else seen
     if id(value) in seen:
         return seen[id(value)]
+    rebuilt: Any
     if isinstance(value, dict):
         rebuilt = copy.copy(value)  # (keeps a subclass's own state, as a defaultdict's factory)
         rebuilt.clear()
