@@ -50,6 +50,14 @@ GROUP_ONLY = ("env.workers", "env.wait")
 """Of those, the keys that change nothing in a single run: it steps its environment in its own process."""
 
 
+def group_only_settings(recipe: Recipe) -> list[str]:
+    """`GROUP_ONLY` settings a recipe gives a single run, where they change nothing (said, not refused: a recipe may
+    be written for groups and also trained alone)."""
+    given = [key for key in GROUP_ONLY if getattr(recipe.env, key.partition(".")[2]) != "auto"]
+    return [f"{' and '.join(given)} set how a group's environments step (layered train --seeds); a single run steps "
+            "its environment in its own process, so they change nothing here"] if given else []
+
+
 def unavailable_settings(recipe: Recipe) -> list[tuple[str, str]]:
     """The recipe's settings this machine cannot honour (a device, a compiler, TensorBoard), as (key, why)."""
     out = sorted({p for i in range(len(recipe.layers)) for p in recipe.learner_config(i).unavailable()})
@@ -126,7 +134,7 @@ def train(
     unavailable = unavailable_settings(recipe)
     if unavailable:
         raise RecipeError(RecipeError.UNNAMED, unavailable)
-    for warning in training_warnings(recipe, max_steps):
+    for warning in training_warnings(recipe, max_steps) + group_only_settings(recipe):
         print(f"layered: warning: {warning}", file=sys.stderr)
     info = RunInfo(label or out.name, max_steps, tuple(plugins), threads=torch.get_num_threads())
     learners = build_learners(recipe)

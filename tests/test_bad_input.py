@@ -136,6 +136,16 @@ def test_a_budget_below_a_layers_warm_up_is_named_before_training(tmp_path, caps
     assert err.index(warning) < err.index("phase 0: slow")
 
 
+def test_a_single_run_given_settings_of_a_groups_environments_is_told_they_change_nothing():
+    from layered.recipe import load_recipe
+    from layered.runs import group_only_settings
+
+    assert group_only_settings(load_recipe(TLA_C)) == []
+    assert group_only_settings(load_recipe(TLA_C, ["env.threads=2"])) == []  # (its evaluations step in threads)
+    said = group_only_settings(load_recipe(TLA_C, ["env.workers=2", "env.wait=spin"]))
+    assert len(said) == 1 and said[0].startswith("env.workers and env.wait set how a group's environments step")
+
+
 def test_report_names_a_broken_run_and_reports_the_others(tmp_path, tiny, capsys):
     good, broken = tmp_path / "runs" / "good", tmp_path / "runs" / "broken"
     assert main(["train", str(TLA_C), *tiny, "--steps", "200", "--out", str(good), "--threads", "1"]) == 0
