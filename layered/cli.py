@@ -253,7 +253,7 @@ def _fail(message: str) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     from layered.recipe import load_recipe, recipe_path
-    from layered.rundir import check_new_run_dir, clear_run_dir
+    from layered.rundir import check_new_run_dir
     from layered.runs import train
 
     if (args.seed is not None or args.seeds is not None) and (given := _seed_override(args.overrides)):
@@ -268,11 +268,10 @@ def _train(args: argparse.Namespace) -> int:
     source = recipe_path(args.recipe)
     out = args.out or Path("runs") / f"{source.stem}-s{recipe.train.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
     args.out = out
-    if args.force and out.is_dir():
-        clear_run_dir(out)
-    check_new_run_dir(out)
+    if not args.force:
+        check_new_run_dir(out)
     print(f"training {args.recipe} -> {out}", file=sys.stderr)
-    train(recipe, out, max_steps=args.steps, label=_label(source), plugins=plugins)
+    train(recipe, out, max_steps=args.steps, label=_label(source), plugins=plugins, force=args.force)
     return _finished(out)
 
 
@@ -291,9 +290,8 @@ def _label(source: Path) -> str:
 
 def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[str]) -> int:
     from layered.group import check_group, group_recipes, train_group
-    from layered.group_state import check_group_directory, clear_group
+    from layered.group_state import check_group_directory
     from layered.recipe import recipe_path
-    from layered.rundir import clear_run_dir
 
     if args.seed is not None:
         return _fail("give --seed or --seeds, not both")
@@ -303,14 +301,9 @@ def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[s
     out = args.out or Path("runs") / f"{source.stem}-group-{time.strftime('%Y%m%d-%H%M%S')}"
     args.out = out  # (stopped at once, it is resumed from here)
     outs = [out / f"seed{seed}" for seed in args.seeds]
-    check_group_directory(out, outs)  # (before --force clears anything)
-    for run in outs:
-        if args.force and run.is_dir():
-            clear_run_dir(run)
-    if args.force:
-        clear_group(out)
+    check_group_directory(out, outs)
     print(f"training {args.recipe}, seeds {args.seeds} as one group -> {out}", file=sys.stderr)
-    results = train_group(recipes, outs, _label(source), args.steps, plugins=plugins)
+    results = train_group(recipes, outs, _label(source), args.steps, plugins=plugins, force=args.force)
     return _group_finished(out, args.seeds, results)
 
 

@@ -45,6 +45,7 @@ from layered.group_state import (
     PhaseLoop,
     check_new_group,
     clear_group,
+    clear_group_and_seeds,
     group_info,
     group_snapshot,
     has_group_checkpoint,
@@ -152,21 +153,23 @@ def _checkpoint_problem(env_id: str) -> str | None:
 
 def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max_steps: int | None = None,
                 progress: bool = True, plugins: Sequence[str] = (), resume: bool = False,
-                changes: Sequence[Change] = ()) -> list[list[dict[str, Any]]]:
+                changes: Sequence[Change] = (), force: bool = False) -> list[list[dict[str, Any]]]:
     """Train the recipes (one recipe's seeds: they differ in `train.seed` alone) as one group, seed k into
     `outs[k]` (the group's directory's `seed<k>` folders); the results rows of every phase, per seed.
 
     With `resume`, the group continues from its last checkpoint (one stopped before its first starts over);
     with `changes` too (one per seed), `recipes` are the seeds' own with some settings changed, recorded in
     each seed's run.json at the step the group continues from. Raises Stopped when SIGINT or SIGTERM stopped
-    it, after a checkpoint at the step under way.
+    it, after a checkpoint at the step under way. With `force`, the seeds' directories and the group's checkpoint are
+    cleared once the recipes, their settings and their start weights have been checked (a directory that holds
+    another group or other files is refused, as without).
     """
     check_group(recipes[0])
     directory = outs[0].parent
     numbers = [recipe.train.seed for recipe in recipes]
     if list(outs) != seed_dirs(directory, numbers):
         raise ValueError(f"a group's run directories are its directory's seed<k> folders, not {list(outs)[:2]}...")
-    if not resume:
+    if not (resume or force):
         check_new_group(directory, outs)  # before anything is built or written
     for warning in training_warnings(recipes[0], max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
@@ -175,6 +178,9 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
     if not resume:
         for recipe, learners in zip(recipes, singles, strict=True):
             start_from_weights(recipe, learners)
+    if force:
+        clear_group_and_seeds(directory, outs)
+        check_new_group(directory, outs)
     info = RunInfo(label, max_steps, tuple(plugins), tuple(numbers), threads=torch.get_num_threads())
     digests = [recipe_digest(resolved(recipe)) for recipe in recipes]
     with ExitStack() as locks:
@@ -263,6 +269,10 @@ def resume_group(directory: Path, max_steps: int | None = None, progress: bool =
         raise RunDirError(f"{directory}: the group was started with {steps_option(info.max_steps)}, not "
                           f"{steps_option(max_steps)}")
     outs = seed_dirs(directory, info.group)
+    for out, seed in zip(outs, info.group, strict=True):
+        if (given := load_recipe(out / "recipe.toml").train.seed) != seed:
+            raise RunDirError(f"{out / 'recipe.toml'}: train.seed is {given}, but the group trained seed {seed} "
+                              "there; put it back to resume the group")
     if not settings:
         recipes = [load_recipe(out / "recipe.toml") for out in outs]
         return train_group(recipes, outs, info.label, info.max_steps, progress, info.plugins, resume=True)

@@ -12,6 +12,7 @@ rows are in the directory's `replay/` folder, each checkpoint adding what was st
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -24,7 +25,7 @@ from layered.best_journal import BestFiles, BestJournal, best_folder, check_best
 from layered.checkpoint import CheckpointError, load_latest, previous, save_checkpoint
 from layered.checkpoint_writer import as_arrays, host_copy
 from layered.replay_journal import Manifest, ReplayJournal, check_segments, replay_folder
-from layered.rundir import RunDirError, RunInfo, check_new_run_dir, read_run_info, steps_option
+from layered.rundir import RunDirError, RunInfo, check_new_run_dir, clear_run_dir, read_run_info, steps_option
 from layered.runstate import LoopState
 
 GROUP_CHECKPOINT = "group.pt"
@@ -204,11 +205,22 @@ def check_group_directory(directory: Path, outs: Sequence[Path]) -> None:
         raise RunDirError(f"{directory} holds a run of its own; a group's seeds go in a directory of their own: choose "
                           "another --out")
     mine = {out.name for out in outs}
-    others = sorted((p.parent.name for p in directory.glob("seed*/run.json") if p.parent.name not in mine),
+    others = sorted((p.parent.name for p in directory.glob("*/run.json") if p.parent.name not in mine),
                     key=lambda name: (len(name), name))
     if others:
-        raise RunDirError(f"{directory} holds {', '.join(others)} of another group; a directory holds one group: "
-                          "choose another --out")
+        whose = "of another group" if all(re.fullmatch(r"seed\d+", name) for name in others) else "of other runs"
+        raise RunDirError(f"{directory} holds {', '.join(others[:3])}{', ...' * (len(others) > 3)} {whose}; a "
+                          "directory holds one group: choose another --out")
+
+
+def clear_group_and_seeds(directory: Path, outs: Sequence[Path]) -> None:
+    """Start a group over (`--force`): its seeds' run directories and its checkpoint removed, where
+    `check_group_directory` takes the directory (refused, nothing removed, where it does not)."""
+    check_group_directory(directory, outs)
+    for out in outs:
+        if out.is_dir():
+            clear_run_dir(out)
+    clear_group(directory)
 
 
 def clear_group(directory: Path) -> None:

@@ -129,6 +129,15 @@ def check_new_run_dir(run_dir: Path) -> None:
                           "choose another --out")
 
 
+def refuse_group_seed(run_dir: Path) -> None:
+    """Refuse a single run in a directory where a seed of a group was trained: the group's resume, evaluation and
+    report take its seeds from their run.json, and one seed replaced would leave the others unfinishable."""
+    if (run_dir / "run.json").exists() and (group := read_run_info(run_dir).group):
+        raise RunDirError(f"{run_dir} holds a seed of the group of seeds {list(group)} in {run_dir.parent}; a single "
+                          f"run cannot take its place (continue the group with `layered resume {run_dir.parent}`, "
+                          "or train the run in a directory of its own)")
+
+
 def clear_run_dir(run_dir: Path) -> None:
     """Remove a run's own files (for --force), under the run's lock: refused before anything is
     removed where another process writes the run or where the directory holds files of another kind."""

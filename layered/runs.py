@@ -31,10 +31,12 @@ from layered.rundir import (
     RunDirError,
     RunInfo,
     check_new_run_dir,
+    clear_run_dir,
     has_progress,
     prepare_run_dir,
     read_run_info,
     record_change,
+    refuse_group_seed,
     steps_option,
     writing,
 )
@@ -118,13 +120,15 @@ class Change:
 def train(
     recipe: Recipe, out_dir: str | Path, max_steps: int | None = None, progress: bool = True,
     label: str | None = None, resume: bool = False, plugins: Sequence[str] = (), change: Change | None = None,
+    force: bool = False,
 ) -> list[dict[str, Any]]:
     """Train every phase of `recipe`, writing the run directory; `max_steps` caps each phase.
 
     `label` names the setup for reports (e.g. `pendulum/tla-c`); runs of the same setup with
     different seeds share it. It defaults to the run directory's name. With `resume`, a run
     directory holding a stopped run continues from its last checkpoint (an empty one starts);
-    without, a directory holding a run is refused. `plugins` (see layered.plugins) are recorded
+    without, a directory holding a run is refused, or with `force` cleared once the recipe, its settings and its
+    start weights have been checked (never a seed of a group, nor a directory holding other files). `plugins` (see layered.plugins) are recorded
     so that evaluating the run imports them again. `change` (with `resume`): `recipe` is the run's own
     with some settings changed, recorded in run.json at the step it continues from. Returns the
     results row of each phase, as in results.json. Raises Stopped when SIGINT or SIGTERM stopped it,
@@ -141,6 +145,9 @@ def train(
     if not (resume and has_progress(out)):
         start_from_weights(recipe, learners)  # a bad `weights` file is refused before anything is written
     if not resume:
+        refuse_group_seed(out)
+        if force and out.is_dir():  # (once the recipe, its settings and its start weights have been checked)
+            clear_run_dir(out)
         check_new_run_dir(out)  # before the lock creates the directory
     with writing(out):
         return _train_in(out, recipe, learners, info, resume, progress, change)

@@ -162,6 +162,22 @@ def test_a_stopped_group_is_refused_a_new_start_and_other_steps_and_force_starts
         resume_group(tmp_path / "g", max_steps=100)
     assert main(["resume", str(tmp_path / "g"), "--set", "env.id=Hopper-v5"]) == 2
     assert group_dir(tmp_path / "g") == group_dir(tmp_path / "g" / "seed1") == tmp_path / "g"
+    stopped = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.name != ".lock")
+    capsys.readouterr()
+    # --force clears nothing for a command refused after it: start weights that are not there
+    assert main([*command, "--force", f"layers.fast.weights={tmp_path / 'nope.pt'}"]) == 2
+    assert "layers[0].weights" in capsys.readouterr().err
+    # nor a single run in a seed's place, which would leave the other seeds unfinishable
+    assert main(["train", str(ROOT / "recipes/pendulum/td3.toml"), *TINY, "--out", str(tmp_path / "g" / "seed1"),
+                 "--force"]) == 2
+    assert "holds a seed of the group of seeds [0, 1]" in capsys.readouterr().err
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.name != ".lock") == stopped
+    recipe = tmp_path / "g" / "seed1" / "recipe.toml"
+    kept = recipe.read_text()
+    recipe.write_text(kept.replace("seed = 1", "seed = 5"))
+    assert main(["resume", str(tmp_path / "g")]) == 2
+    assert "train.seed is 5, but the group trained seed 1 there" in capsys.readouterr().err
+    recipe.write_text(kept)
     assert main([*command, "--force"]) == 0
     assert not (tmp_path / "g" / GROUP_CHECKPOINT).exists()
     assert main(["resume", str(tmp_path / "g")]) == 0
@@ -348,8 +364,10 @@ def test_a_group_is_refused_a_directory_that_holds_another_group_or_a_run_of_its
     train = ["train", str(ROOT / "recipes/pendulum/td3.toml"), "--steps", "100", *TINY]
     assert main([*train, "--seeds", "0-1", "--out", str(tmp_path / "g")]) == 0
     assert main([*train, "--out", str(tmp_path / "single")]) == 0
+    assert main([*train, "--seed", "5", "--out", str(tmp_path / "runs" / "a")]) == 0
     for out, seeds, says in ((tmp_path / "g", "3-4", "holds seed0, seed1 of another group"),
-                             (tmp_path / "single", "0-1", "holds a run of its own")):
+                             (tmp_path / "single", "0-1", "holds a run of its own"),
+                             (tmp_path / "runs", "0-1", "holds a of other runs")):
         capsys.readouterr()
         for force in ([], ["--force"]):
             assert main([*train, "--seeds", seeds, "--out", str(out), *force]) == 2

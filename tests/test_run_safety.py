@@ -84,6 +84,20 @@ def test_a_second_writer_is_refused_in_one_line_and_a_killed_writer_leaves_no_lo
     assert writer(run) is None  # the kernel released it with the process
 
 
+def test_force_clears_a_run_only_once_the_command_is_taken(tmp_path, capsys):
+    run = tmp_path / "run"
+    tiny = ["learner.hidden=[16]", "learner.batch_size=16", "train.warmup=20", "eval.every=100", "eval.episodes=1",
+            "eval.fresh_episodes=1", "--steps", "100", "--threads", "1", "--out", str(run)]
+    assert main(["train", "pendulum/td3.toml", *tiny]) == 0
+    before = {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != ".lock"}
+    capsys.readouterr()
+    assert main(["train", "pendulum/td3.toml", *tiny, "--force", f"layers.fast.weights={tmp_path / 'nope.pt'}"]) == 2
+    assert "no checkpoint for layer 'fast'" in capsys.readouterr().err
+    assert {p.relative_to(run): p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name != ".lock"} == before
+    assert main(["train", "pendulum/td3.toml", *tiny, "--force", "train.seed=1"]) == 0  # taken: started over
+    assert json.loads((run / "run.json").read_text())["label"] and "seed = 1" in (run / "recipe.toml").read_text()
+
+
 def test_force_deletes_nothing_in_a_directory_that_holds_files_of_another_kind(tmp_path, capsys):
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
