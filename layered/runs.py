@@ -126,10 +126,10 @@ def train(
 
     `label` names the setup for reports (e.g. `pendulum/tla-c`); runs of the same setup with
     different seeds share it. It defaults to the run directory's name. With `resume`, a run
-    directory holding a stopped run continues from its last checkpoint (an empty one starts);
-    without, a directory holding a run is refused, or with `force` cleared once the recipe, its settings and its
-    start weights have been checked (never a seed of a group, nor a directory holding other files). `plugins` (see layered.plugins) are recorded
-    so that evaluating the run imports them again. `change` (with `resume`): `recipe` is the run's own
+    directory holding a stopped run continues from its last checkpoint (an empty one starts); without, a directory
+    holding a run is refused, or with `force` cleared once the recipe, its settings and its start weights have been
+    checked (never a seed of a group, nor a directory holding other files). `plugins` (see layered.plugins) are
+    recorded so that evaluating the run imports them again. `change` (with `resume`): `recipe` is the run's own
     with some settings changed, recorded in run.json at the step it continues from. Returns the
     results row of each phase, as in results.json. Raises Stopped when SIGINT or SIGTERM stopped it,
     after a final checkpoint.
