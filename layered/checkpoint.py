@@ -14,6 +14,7 @@ import hashlib
 import io
 import os
 import pickle
+import re
 import sys
 import tempfile
 from collections.abc import Callable
@@ -53,6 +54,13 @@ def _write_atomically(path: Path, write: Callable[[BinaryIO], object], keep_prev
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def unfinished_write(name: str) -> str | None:
+    """The name of the file whose write was cut short, where `name` is a temporary file `_write_atomically` left
+    behind (`.NAME.` and mkstemp's 8 characters); None for any other name."""
+    match = re.fullmatch(r"\.(.+)\.[a-z0-9_]{8}", name)
+    return match.group(1) if match else None
 
 
 def write_atomically(path: Path, text: str) -> None:

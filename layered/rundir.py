@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from layered.checkpoint import previous, write_atomically
+from layered.checkpoint import previous, unfinished_write, write_atomically
 from layered.errors import BadInput
 from layered.summary import PHASES_FILE
 
@@ -74,6 +74,7 @@ def writing(run_dir: Path) -> Iterator[None]:
         command = command if len(command) <= 200 else f"{command[:120]} ... {command[-75:]}"  # --out is last
         os.write(fd, f"process {os.getpid()} on {socket.gethostname()} ({command})".encode())
         _HELD.add(run_dir.resolve())
+        tidy_unfinished_writes(run_dir)
         yield
     finally:
         _HELD.discard(run_dir.resolve())
@@ -107,8 +108,18 @@ def warn_if_being_written(run_dir: Path) -> None:
 
 
 def foreign_files(run_dir: Path) -> list[str]:
-    """The names in a directory that are not a run's files."""
-    return sorted(p.name for p in run_dir.iterdir() if p.name not in RUN_FILES)
+    """The names in a directory that are not a run's files (nor what a write of one cut short left)."""
+    return sorted(p.name for p in run_dir.iterdir() if p.name not in RUN_FILES and
+                  unfinished_write(p.name) not in RUN_FILES)
+
+
+def tidy_unfinished_writes(run_dir: Path) -> None:
+    """Remove what writes cut short (a process killed while writing a file) left in the run's directory and its
+    checkpoints/: temporary files, each beside the intact file it was to replace. Only the run's writer does it."""
+    for folder, kept in ((run_dir, RUN_FILES), (run_dir / "checkpoints", None)):
+        for path in folder.glob(".*") if folder.is_dir() else ():
+            if (name := unfinished_write(path.name)) is not None and (kept is None or name in kept):
+                path.unlink(missing_ok=True)
 
 
 def check_new_run_dir(run_dir: Path) -> None:
@@ -144,7 +155,7 @@ def clear_run_dir(run_dir: Path) -> None:
     if foreign := foreign_files(run_dir):
         raise RunDirError(f"{run_dir} holds files that are not a run's ({', '.join(foreign[:3])}); --force "
                           "starts a run over only in a directory of its own: choose another --out")
-    with writing(run_dir):
+    with writing(run_dir):  # (which removes what writes cut short left)
         for name in RUN_FILES:
             path = run_dir / name
             if path.is_dir():

@@ -98,6 +98,27 @@ def test_force_clears_a_run_only_once_the_command_is_taken(tmp_path, capsys):
     assert json.loads((run / "run.json").read_text())["label"] and "seed = 1" in (run / "recipe.toml").read_text()
 
 
+def test_what_a_killed_write_left_is_the_runs_own_and_its_next_writer_removes_it(tmp_path):
+    from layered.checkpoint import unfinished_write
+
+    assert unfinished_write(".recipe.toml.k3j_h5g6") == "recipe.toml" and unfinished_write(".lock") is None
+    assert unfinished_write(".notes.txt") is None and unfinished_write("recipe.toml.k3j4h5g6") is None
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / ".recipe.toml.k3j4h5g6").write_text("[env")  # killed while writing the run's first file
+    tiny = ["learner.hidden=[16]", "learner.batch_size=16", "train.warmup=20", "eval.every=100", "eval.episodes=1",
+            "eval.fresh_episodes=1", "--steps", "100", "--threads", "1", "--out", str(run)]
+    assert main(["train", "pendulum/td3.toml", *tiny]) == 0  # a run that wrote nothing starts without asking
+    assert not (run / ".recipe.toml.k3j4h5g6").exists()
+    (run / "checkpoints" / ".fast.best.pt.0a1b2c3d").write_bytes(b"half")
+    (run / ".results.json.0a1b2c3d").write_text("{")
+    (run / ".notes.abcdefgh").write_text("mine")  # (a file of the user's that only looks like one)
+    assert main(["train", "pendulum/td3.toml", *tiny, "--force"]) == 2  # the user's file is not the run's
+    (run / ".notes.abcdefgh").unlink()
+    assert main(["train", "pendulum/td3.toml", *tiny, "--force"]) == 0
+    assert not list(run.glob(".*.*")) and not list((run / "checkpoints").glob(".*"))
+
+
 def test_force_deletes_nothing_in_a_directory_that_holds_files_of_another_kind(tmp_path, capsys):
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
