@@ -724,7 +724,10 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:  # e.g. an --out that cannot be created
         if isinstance(e, (FileExistsError, NotADirectoryError)) and e.filename and Path(e.filename).is_file():
             return _fail(f"{e.filename}: is a file, not a directory")
-        return _fail(f"{e.filename or ''}: {e.strerror or e}")
+        if e.filename:
+            return _fail(f"{e.filename}: {e.strerror or e}")
+        return _fail(f"{e.strerror or e} (writing {getattr(args, 'out', None) or getattr(args, 'run_dir', '')}); "
+                     f"{_how_to_continue(args)}")
 
 
 def _how_to_continue(args: argparse.Namespace) -> str:

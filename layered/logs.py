@@ -49,7 +49,9 @@ class CsvLog:
         without that column, in the places its header gives, not shifted by it."""
         self.close()
         if not self.path.exists() or self.size() < size:
-            raise FileNotFoundError(f"{self.path} is shorter than the {size} bytes its checkpoint recorded")
+            state = f"shorter than the {size} bytes its checkpoint recorded" if self.path.exists() else "missing"
+            raise BadInput(f"{self.path} is {state}: the rows the run wrote before that checkpoint are lost, so it "
+                           "cannot continue exactly; train it again with --force")
         with self.path.open("r+b") as f:
             f.truncate(size)
         with self.path.open(newline="") as f:

@@ -119,6 +119,33 @@ def test_what_a_killed_write_left_is_the_runs_own_and_its_next_writer_removes_it
     assert not list(run.glob(".*.*")) and not list((run / "checkpoints").glob(".*"))
 
 
+def test_a_full_disk_and_a_cut_log_say_what_happened_and_the_way_on(tmp_path, monkeypatch, capsys):
+    import errno
+
+    from conftest import stop_at_episode_end
+
+    import layered.runs
+
+    run = tmp_path / "run"
+    tiny = ["learner.hidden=[16]", "learner.batch_size=16", "train.warmup=20", "eval.every=100", "eval.episodes=1",
+            "eval.fresh_episodes=1", "train.checkpoint_every=100", "--steps", "400", "--threads", "1",
+            "--out", str(run)]
+
+    def full(*args):
+        raise OSError(errno.ENOSPC, "No space left on device")  # (as a write in a thread says it: no file named)
+
+    monkeypatch.setattr(layered.runs, "write_results", full)
+    assert main(["train", "pendulum/td3.toml", *tiny]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"layered: error: No space left on device (writing {run}); continue from the last checkpoint with: "
+        f"layered resume {run}")
+    monkeypatch.undo()
+    (run / "metrics.csv").write_text("step\n")  # cut below what the last checkpoint recorded
+    assert main(["resume", str(run)]) == 2
+    said = capsys.readouterr().err.strip().splitlines()[-1]
+    assert said.startswith(f"layered: error: {run / 'metrics.csv'} is shorter than the ") and "--force" in said
+
+
 def test_force_deletes_nothing_in_a_directory_that_holds_files_of_another_kind(tmp_path, capsys):
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
