@@ -206,21 +206,22 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
         del singles
         if saved is not None:
             _take_up(group, saved, changes, before)
-        try:
-            with stop.installed(), writer:  # (the last checkpoint written before results, or a stop, are reported)
-                group.train(saved)
-        except Diverged as e:
-            way = way_on(directory, recipes[0], e.layer, has_group_checkpoint(directory))
-            raise Diverged(f"{e}; {way}", e.layer) from None
-        finally:
+        with stop.installed():  # (until the results are written: a signal after the last step lets them finish)
+            try:
+                with writer:  # (the last checkpoint written before results, or a stop, are reported)
+                    group.train(saved)
+            except Diverged as e:
+                way = way_on(directory, recipes[0], e.layer, has_group_checkpoint(directory))
+                raise Diverged(f"{e}; {way}", e.layer) from None
+            finally:
+                for seed in seeds:
+                    seed.metrics.close()
+                    seed.episodes.close()
+                    if seed.events is not None:
+                        seed.events.close()
             for seed in seeds:
-                seed.metrics.close()
-                seed.episodes.close()
-                if seed.events is not None:
-                    seed.events.close()
-        for seed in seeds:
-            write_results(seed.recipe, seed.state.rows, seed.out, label)
-        clear_group(directory)  # every seed's run directory now holds its results
+                write_results(seed.recipe, seed.state.rows, seed.out, label)
+            clear_group(directory)  # every seed's run directory now holds its results
     return [seed.state.rows for seed in seeds]
 
 

@@ -187,16 +187,17 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
     else:
         run.metrics.truncate(state.log_sizes["metrics"])
         run.episodes.truncate(state.log_sizes["episodes"])
-    try:
-        train_phases(run, state, out)
-    except Diverged as e:
-        raise Diverged(f"{e}; {way_on(out, recipe, e.layer, has_progress(out))}", e.layer) from None
-    finally:
-        run.metrics.close()
-        run.episodes.close()
-        if run.events is not None:
-            run.events.close()
-    write_results(recipe, state.rows, out, info.label)
+    with run.stop.installed():  # (until the results are written: a signal after the last step lets them finish)
+        try:
+            train_phases(run, state, out)
+        except Diverged as e:
+            raise Diverged(f"{e}; {way_on(out, recipe, e.layer, has_progress(out))}", e.layer) from None
+        finally:
+            run.metrics.close()
+            run.episodes.close()
+            if run.events is not None:
+                run.events.close()
+        write_results(recipe, state.rows, out, info.label)
     return state.rows
 
 

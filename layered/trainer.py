@@ -79,23 +79,23 @@ def checkpoint_interval(recipe: Recipe) -> int:
 
 
 def train_phases(run: Training, state: LoopState, out: Path) -> None:
-    """Train the phases from where `state` stands, checkpointing at the end of each."""
+    """Train the phases from where `state` stands, checkpointing at the end of each (SIGINT and SIGTERM handled by
+    `run.stop`, installed by the caller)."""
     recipe = run.recipe
-    with run.stop.installed():
-        phases = phases_of(recipe)
-        if state.rows:  # (resumed: written again for a run whose file is missing, from before it was kept)
-            write_finished_phases(state.rows, out)
-        for p in range(len(state.rows), len(phases)):
-            if not state.curve:  # the phase starts now, rather than resuming from a checkpoint inside it
-                state.start_phase(p, phases[p].learn, recipe.eval.every, checkpoint_interval(recipe))
-            result = run_phase(run, state, phases[p], phase_budget(recipe, phases[p], run.max_steps))
-            if p == len(phases) - 1:
-                run.stop.finishing()
-            state.finish_phase(_finish_phase(run, state, phases[p], result))
-            write_finished_phases(state.rows, out)  # (before the checkpoint: a phase finished again writes it again)
-            run.save(state)
-            if run.stop.requested and p < len(phases) - 1:
-                raise Stopped(run.stop.requested, p + 1, 0, out)
+    phases = phases_of(recipe)
+    if state.rows:  # (resumed: written again for a run whose file is missing, from before it was kept)
+        write_finished_phases(state.rows, out)
+    for p in range(len(state.rows), len(phases)):
+        if not state.curve:  # the phase starts now, rather than resuming from a checkpoint inside it
+            state.start_phase(p, phases[p].learn, recipe.eval.every, checkpoint_interval(recipe))
+        result = run_phase(run, state, phases[p], phase_budget(recipe, phases[p], run.max_steps))
+        if p == len(phases) - 1:
+            run.stop.finishing()
+        state.finish_phase(_finish_phase(run, state, phases[p], result))
+        write_finished_phases(state.rows, out)  # (before the checkpoint: a phase finished again writes it again)
+        run.save(state)
+        if run.stop.requested and p < len(phases) - 1:
+            raise Stopped(run.stop.requested, p + 1, 0, out)
 
 
 def _finish_phase(run: Training, state: LoopState, phase: Phase, result: PhaseResult) -> dict[str, Any]:

@@ -374,3 +374,29 @@ def test_a_group_is_refused_a_directory_that_holds_another_group_or_a_run_of_its
             assert says in capsys.readouterr().err
         assert not (out / "seed3").exists() and not (tmp_path / "single" / "seed0").exists()
     assert main([*train, "--seeds", "0-1", "--out", str(tmp_path / "g"), "--force"]) == 0  # the same group again
+
+
+@pytest.mark.parametrize("seeds", [None, "0,1"], ids=["single run", "group"])
+def test_a_signal_while_the_results_are_written_lets_them_finish(seeds, tmp_path, monkeypatch, capsys):
+    """Past the last step no checkpoint could stop a run sooner: one signal as its results are written says so and
+    the results are finished (exit 0); the handler used to be gone by then, and the run stopped at once."""
+    import os
+    import signal
+
+    import layered.runs as runs_module
+
+    module = runs_module if seeds is None else group_module
+    original, sent = module.write_results, []
+
+    def signalled(*args):
+        if not sent:  # (once: a group writes each seed's)
+            sent.append(os.kill(os.getpid(), signal.SIGINT))
+        return original(*args)
+
+    monkeypatch.setattr(module, "write_results", signalled)
+    out = tmp_path / "run"
+    seed = ["--seeds", seeds] if seeds else []
+    assert main(["train", str(ROOT / "recipes/pendulum/td3.toml"), *seed, "--steps", "200", *TINY,
+                 "--out", str(out)]) == 0
+    assert "no step is left: finishing the last evaluations and writing the results" in capsys.readouterr().err
+    assert all((run / "results.json").exists() for run in ([out] if seeds is None else [out / "seed0", out / "seed1"]))
