@@ -122,7 +122,6 @@ def test_what_a_killed_write_left_is_the_runs_own_and_its_next_writer_removes_it
 def test_a_full_disk_and_a_cut_log_say_what_happened_and_the_way_on(tmp_path, monkeypatch, capsys):
     import errno
 
-    from conftest import stop_at_episode_end
 
     import layered.runs
 
