@@ -316,7 +316,7 @@ def _group_finished(out: Path, seeds: Sequence[int], results: list[list[dict[str
 
 def _resume(args: argparse.Namespace) -> int:
     from layered.group_state import group_dir
-    from layered.rundir import read_run_info
+    from layered.rundir import RUN_CHECKPOINT, read_run_info
     from layered.runs import resume
 
     if (directory := group_dir(args.run_dir)) is not None:
@@ -324,12 +324,25 @@ def _resume(args: argparse.Namespace) -> int:
     info = read_run_info(args.run_dir)
     load_plugins(info.plugins)
     _threads_as_trained(args, info)
-    if (args.run_dir / "results.json").exists():
+    results = args.run_dir / "results.json"
+    if results.exists() and (_readable(results) or not (args.run_dir / RUN_CHECKPOINT).exists()):
         print(f"{args.run_dir} has finished; nothing to resume", file=sys.stderr)
         return 0
+    if results.exists():
+        print(f"layered: {results} is damaged; writing the run's results again from its last checkpoint",
+              file=sys.stderr)
     print(f"resuming {args.run_dir}", file=sys.stderr)
     resume(args.run_dir, max_steps=args.steps, settings=args.settings)
     return _finished(args.run_dir)
+
+
+def _readable(path: Path) -> bool:
+    """Whether a JSON file reads whole."""
+    try:
+        json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError):
+        return False
+    return True
 
 
 def _resume_group(args: argparse.Namespace, directory: Path) -> int:

@@ -145,6 +145,20 @@ def test_a_full_disk_and_a_cut_log_say_what_happened_and_the_way_on(tmp_path, mo
     assert said.startswith(f"layered: error: {run / 'metrics.csv'} is shorter than the ") and "--force" in said
 
 
+def test_a_finished_runs_damaged_results_are_written_again_by_resume(tmp_path, capsys):
+    run = tmp_path / "run"
+    tiny = ["learner.hidden=[16]", "learner.batch_size=16", "train.warmup=20", "eval.every=100", "eval.episodes=1",
+            "eval.fresh_episodes=1", "--steps", "200", "--threads", "1", "--out", str(run)]
+    assert main(["train", "pendulum/td3.toml", *tiny]) == 0
+    whole = (run / "results.json").read_bytes()
+    (run / "results.json").write_bytes(whole[:100])  # cut short, as a full disk can leave a file not written whole
+    capsys.readouterr()
+    assert main(["resume", str(run)]) == 0
+    assert "results.json is damaged; writing the run's results again" in capsys.readouterr().err
+    assert (run / "results.json").read_bytes() == whole
+    assert main(["resume", str(run)]) == 0 and "has finished; nothing to resume" in capsys.readouterr().err
+
+
 def test_force_deletes_nothing_in_a_directory_that_holds_files_of_another_kind(tmp_path, capsys):
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
