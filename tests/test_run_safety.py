@@ -151,7 +151,7 @@ def test_a_finished_runs_damaged_results_are_written_again_by_resume(tmp_path, c
             "eval.fresh_episodes=1", "--steps", "200", "--threads", "1", "--out", str(run)]
     assert main(["train", "pendulum/td3.toml", *tiny]) == 0
     whole = (run / "results.json").read_bytes()
-    (run / "results.json").write_bytes(whole[:100])  # cut short, as a full disk can leave a file not written whole
+    (run / "results.json").write_bytes(whole[:100])  # damaged (cut short)
     capsys.readouterr()
     assert main(["resume", str(run)]) == 0
     assert "results.json is damaged; writing the run's results again" in capsys.readouterr().err
