@@ -184,5 +184,6 @@ def load_latest(path: Path, layer: str, check: Callable[[dict[str, Any]], None] 
             print(f"layered: warning: {problems[0]}; using the previous checkpoint {candidate.name}", file=sys.stderr)
         return state
     if problems:
-        raise CheckpointError("; ".join(problems) + "; no usable checkpoint is left")
+        raise CheckpointError("; ".join(dict.fromkeys(problems)) + "; no usable checkpoint is left")  # (a file both
+        # checkpoints name, such as a replay segment, once)
     return None

@@ -47,6 +47,19 @@ def test_a_damaged_newest_checkpoint_gives_way_to_the_previous_one_and_two_are_r
         load_latest(path, "run")
 
 
+def test_a_file_that_both_checkpoints_name_is_named_once_when_neither_can_be_used(tmp_path):
+    path = tmp_path / "run.pt"
+    save_checkpoint(path, "run", STATE)
+    save_checkpoint(path, "run", STATE, keep_previous=True)
+
+    def check(state):
+        raise CheckpointError("replay/segment-1.pt: missing")  # (a segment both checkpoints hold)
+
+    with pytest.raises(CheckpointError) as refused:
+        load_latest(path, "run", check)
+    assert str(refused.value) == "replay/segment-1.pt: missing; no usable checkpoint is left"
+
+
 def test_one_writer_per_run_directory(tmp_path):
     with writing(tmp_path / "run"):
         assert writer(tmp_path / "run") is None  # no other writer
