@@ -2,6 +2,7 @@
 
 import pytest
 
+from layered.errors import BadInput
 from layered.logs import CsvLog
 
 
@@ -18,7 +19,7 @@ def test_rows_are_on_disk_as_written_and_truncate_returns_to_a_recorded_size(tmp
     log.write({"phase": 1, "step": 2, "return": -3.0})
     log.close()
     assert (tmp_path / "episodes.csv").read_bytes() == b"phase,step,return\r\n0,5,1.5\r\n1,2,-3.0\r\n"
-    with pytest.raises(FileNotFoundError, match="shorter"):
+    with pytest.raises(BadInput, match="shorter than the 10000 bytes its checkpoint recorded: the rows"):
         log.truncate(10_000)
 
 
