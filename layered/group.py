@@ -79,7 +79,7 @@ from layered.runs import (
     unavailable_settings,
     way_on,
 )
-from layered.runstate import LoopState, recipe_digest
+from layered.runstate import LoopState
 from layered.stack import Stack
 from layered.trainer import (
     FRESH_MEASURES,
@@ -182,12 +182,12 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
         clear_group_and_seeds(directory, outs)
         check_new_group(directory, outs)
     info = RunInfo(label, max_steps, tuple(plugins), tuple(numbers), threads=torch.get_num_threads())
-    digests = [recipe_digest(resolved(recipe)) for recipe in recipes]
+    resolved_recipes = [resolved(recipe) for recipe in recipes]
     with ExitStack() as locks:
         for out in outs:
             locks.enter_context(writing(out))
         before = [changed_from(out, changes[k] if changes else None) for k, out in enumerate(outs)] if resume else []
-        saved = load_group(directory, numbers, digests, max_steps, before) if resume else None
+        saved = load_group(directory, numbers, resolved_recipes, max_steps, before) if resume else None
         if saved is None and changes:
             raise RunDirError(f"{directory}: the group has no checkpoint to continue from with other settings; train "
                               "it again with --force and the settings in the recipe or on the command line")
@@ -200,7 +200,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
                  for k, (recipe, out, learners) in enumerate(zip(recipes, outs, singles, strict=True))]
         stop = StopRequest(until="this step")
         writer = CheckpointWriter(beside=writes_beside(next(iter(singles[0].values())).device))
-        group = Group(seeds, stack_learners(recipes, singles), max_steps, progress, directory, digests, stop,
+        group = Group(seeds, stack_learners(recipes, singles), max_steps, progress, directory, resolved_recipes, stop,
                       ReplayJournal(replay_folder(directory / GROUP_CHECKPOINT)),
                       BestJournal(best_folder(directory / GROUP_CHECKPOINT)), writer)
         del singles
@@ -305,10 +305,10 @@ class Group:
     """K seeds of a recipe training together, phase by phase, checkpointing every `checkpoint_every` steps."""
 
     def __init__(self, seeds: list[Seed], learners: dict[str, GroupLearner], max_steps: int | None, progress: bool,
-                 directory: Path, digests: list[str], stop: StopRequest, journal: ReplayJournal, best: BestJournal,
-                 writer: CheckpointWriter) -> None:
+                 directory: Path, recipes: list[dict[str, Any]], stop: StopRequest, journal: ReplayJournal,
+                 best: BestJournal, writer: CheckpointWriter) -> None:
         self.seeds, self.learners, self.max_steps, self.progress = seeds, learners, max_steps, progress
-        self.directory, self.digests, self.stop, self.journal, self.best = directory, digests, stop, journal, best
+        self.directory, self.recipes, self.stop, self.journal, self.best = directory, recipes, stop, journal, best
         self.writer = writer
         self.recipe = seeds[0].recipe
         self.rows = len(seeds)
@@ -484,7 +484,7 @@ class Group:
         numbers, states = [seed.recipe.train.seed for seed in self.seeds], [seed.state for seed in self.seeds]
         replays = self.journal.record(replays_of(self.learners))  # (the rows stored since the last checkpoint)
         best = self.best.record(numbers, states)  # (the best weights of seeds whose best changed since)
-        snapshot = group_snapshot(numbers, self.digests, self.max_steps,
+        snapshot = group_snapshot(numbers, self.recipes, self.max_steps,
                                   GroupCheckpoint(states, loop, rules.state_dict(), envs.snapshots(), envs.obs,
                                                   {name: g.resume_state() for name, g in self.learners.items()},
                                                   torch.get_rng_state(), replays, best), self.writer.beside)

@@ -12,6 +12,7 @@ rows are in the directory's `replay/` folder, each checkpoint adding what was st
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -26,7 +27,7 @@ from layered.checkpoint import CheckpointError, load_latest, previous, save_chec
 from layered.checkpoint_writer import as_arrays, host_copy
 from layered.replay_journal import Manifest, ReplayJournal, check_segments, replay_folder
 from layered.rundir import RunDirError, RunInfo, check_new_run_dir, clear_run_dir, read_run_info, steps_option
-from layered.runstate import LoopState
+from layered.runstate import LoopState, digested, recipe_differences, recipe_digest
 
 GROUP_CHECKPOINT = "group.pt"
 
@@ -124,13 +125,15 @@ def seed_dirs(directory: Path, seeds: Sequence[int]) -> list[Path]:
     return [directory / f"seed{seed}" for seed in seeds]
 
 
-def group_snapshot(seeds: list[int], digests: list[str], max_steps: int | None, checkpoint: GroupCheckpoint,
-                   beside: bool = True) -> dict[str, Any]:
-    """The group's checkpoint as its file holds it; for a write `beside` training, its tensors copied to the host
-    (`host_copy`), so that the group can go on while it is written."""
+def group_snapshot(seeds: list[int], recipes: list[dict[str, Any]], max_steps: int | None,
+                   checkpoint: GroupCheckpoint, beside: bool = True) -> dict[str, Any]:
+    """The group's checkpoint as its file holds it, with its seeds' resolved `recipes` (what resuming must match);
+    for a write `beside` training, its tensors copied to the host (`host_copy`), so that the group can go on while
+    it is written."""
     loop = checkpoint.loop
     return host_copy({
-        "seeds": list(seeds), "recipe_digests": list(digests), "max_steps": max_steps,
+        "seeds": list(seeds), "recipe_digests": [recipe_digest(recipe) for recipe in recipes],
+        "recipes": [json.dumps(digested(recipe), sort_keys=True) for recipe in recipes], "max_steps": max_steps,
         "states": [state.to_json() for state in checkpoint.states], "best": checkpoint.best,
         "loop": {"step": loop.step, "pending": {str(i): asdict(p) for i, p in loop.pending.items()},
                  "returns": loop.returns, "lengths": loop.lengths},
@@ -144,10 +147,11 @@ def save_group(directory: Path, snapshot: dict[str, Any]) -> None:
     save_checkpoint(directory / GROUP_CHECKPOINT, "group", snapshot, keep_previous=True)
 
 
-def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps: int | None,
+def load_group(directory: Path, seeds: list[int], recipes: list[dict[str, Any]], max_steps: int | None,
                before: Sequence[str | None] = ()) -> GroupCheckpoint | None:
     """The group's newest usable checkpoint (one whose replay segments and best weights are all there, undamaged),
-    or None if it has none; refused, in one line, when it was taken for other seeds, recipes or `--steps`.
+    or None if it has none; refused, in one line, when it was taken for other seeds, recipes (`resolved`, naming
+    what differs) or `--steps`.
     A seed's checkpoint may also have been taken with the recipe of digest `before[k]` (its settings changed
     since, see `layered.runs.changed_from`)."""
     path = directory / GROUP_CHECKPOINT
@@ -165,11 +169,15 @@ def load_group(directory: Path, seeds: list[int], digests: list[str], max_steps:
     if saved["seeds"] != list(seeds):
         raise CheckpointError(f"{directory}: the group's checkpoint is of seeds {saved['seeds']}, not {list(seeds)}")
     before = list(before) or [None] * len(seeds)
-    changed = [seed for seed, a, b, c in zip(seeds, saved["recipe_digests"], digests, before, strict=True)
+    digests = [recipe_digest(recipe) for recipe in recipes]
+    changed = [k for k, (a, b, c) in enumerate(zip(saved["recipe_digests"], digests, before, strict=True))
                if a not in (b, c)]
     if changed:
-        raise CheckpointError(f"{directory}: the recipe of seeds {changed} differs from the one the group's "
-                              "checkpoint was taken with")
+        k = changed[0]
+        what = ("" if "recipes" not in saved else  # (a checkpoint of an earlier version holds their digests alone)
+                " (" + ", ".join(recipe_differences(json.loads(saved["recipes"][k]), digested(recipes[k]))) + ")")
+        raise CheckpointError(f"{directory}: the recipe of seeds {[seeds[k] for k in changed]} differs from the one "
+                              f"the group's checkpoint was taken with{what}")
     if saved["max_steps"] != max_steps:
         raise CheckpointError(f"{directory}: the group was started with {steps_option(saved['max_steps'])}, not "
                               f"{steps_option(max_steps)}")

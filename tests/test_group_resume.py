@@ -177,6 +177,10 @@ def test_a_stopped_group_is_refused_a_new_start_and_other_steps_and_force_starts
     recipe.write_text(kept.replace("seed = 1", "seed = 5"))
     assert main(["resume", str(tmp_path / "g")]) == 2
     assert "train.seed is 5, but the group trained seed 1 there" in capsys.readouterr().err
+    recipe.write_text(kept.replace("warmup = 40", "warmup = 30"))
+    assert main(["resume", str(tmp_path / "g")]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].endswith(
+        "the recipe of seeds [1] differs from the one the group's checkpoint was taken with (train.warmup: 40 -> 30)")
     recipe.write_text(kept)
     assert main([*command, "--force"]) == 0
     assert not (tmp_path / "g" / GROUP_CHECKPOINT).exists()
