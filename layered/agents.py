@@ -129,8 +129,8 @@ class LayeredEnv(AECEnv[str, np.ndarray, np.ndarray | None]):
         output is clipped to the space when the stack holds it; the transition records it as given)."""
         output, space = np.asarray(action), self._action_spaces[agent]
         if output.size != int(np.prod(space.shape)):
-            raise ValueError(f"layer {agent!r} outputs {int(np.prod(space.shape))} numbers (its action space is "
-                             f"{space}), not an array of shape {output.shape}")
+            raise ValueError(f"layer {agent!r} was given an output of shape {output.shape}; its action space {space} "
+                             f"takes {int(np.prod(space.shape))} number{'s' * (int(np.prod(space.shape)) != 1)}")
         if not np.isfinite(output).all():
             raise ValueError(f"layer {agent!r} was given a non-finite action {output.ravel().tolist()}")
 

@@ -21,6 +21,7 @@ from layered.evaluate import evaluation_seed
 from layered.group_eval import Stacks, close_evaluator, evaluate_run, open_run_evaluator
 from layered.interrupt import StopRequest, Stopped
 from layered.learners import Learner
+from layered.learners.base import checked_losses
 from layered.errors import Diverged
 from layered.events import EventLog
 from layered.logs import CsvLog
@@ -195,7 +196,7 @@ def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, e
             if state.decisions[name] > warmups[name]:
                 for _ in range(updates[name]):
                     if (losses := learner.update()) is not None:
-                        state.pending[name].add(losses)
+                        state.pending[name].add(checked_losses(learner, name, losses))
         if state.step >= state.next_eval:  # log
             _evaluate(run, state, phase, evaluator, bar)
             state.next_eval += recipe.eval.every

@@ -116,8 +116,8 @@ def test_a_loop_sampling_the_layers_action_spaces_repeats_itself_given_the_seed(
 
 def test_misuse_of_the_agent_view_is_one_clear_error_naming_the_layer():
     env = make_aec_env(stack_recipe([4, 1]), seed=0)
-    with pytest.raises(ValueError, match=r"layer 'l0' outputs 1 numbers \(its action space is .*\), not an array of "
-                                         r"shape \(3,\)"):
+    with pytest.raises(ValueError, match=r"layer 'l0' was given an output of shape \(3,\); its action space .* takes "
+                                         r"1 number$"):
         env.step(np.zeros(3, np.float32))
     with pytest.raises(ValueError, match=r"layer 'l0' was given a non-finite action \[nan\]"):
         env.step(np.array([np.nan], np.float32))

@@ -88,3 +88,61 @@ def test_a_shared_learner_setting_one_layers_learner_lacks_is_refused_saying_whe
                         "layers.slow.learner.hidden=[16, 16]", "--out", tmp_path / "run")
     assert proc.returncode == 2 and "layers[0].learner.hidden: unknown key" in proc.stderr
     assert "[learner]" not in proc.stderr  # the layer's own table said it
+
+
+FLAWED_LEARNERS = '''
+import numpy as np
+import torch
+
+from layered.learners import LEARNERS, Learner, LearnerConfig
+
+
+class Flawed(Learner):
+    loss_names = ("x",)
+
+    def act(self, obs, explore):
+        return np.zeros(self.action_space.shape, np.float32)
+
+    def act_macs(self):
+        return 0
+
+    def observe(self, transition):
+        pass
+
+    def update(self):
+        return None
+
+    def state_dict(self):
+        return {"w": torch.zeros(2)}
+
+    def load_state_dict(self, state):
+        state["w"]
+
+
+def register(name, **methods):
+    config = type(f"{name}Config", (LearnerConfig,), {"__annotations__": {"kind": str}, "kind": name})
+    LEARNERS.register(name)(type(name, (Flawed,), {"Config": config, **methods}))
+
+
+register("flawed-numpy", state_dict=lambda self: {"w": np.zeros(2)})
+register("flawed-keys", load_state_dict=lambda self, state: state["missing"])
+register("flawed-loss", update=lambda self: {"x": 1.0})
+'''
+
+
+@pytest.mark.parametrize(("kind", "says", "written"), [
+    ("flawed-numpy", "its state_dict() holds a numpy.ndarray at ['w']; a checkpoint holds tensors", False),
+    ("flawed-keys", "load_state_dict() cannot take what state_dict() returns (KeyError: 'missing')", False),
+    ("flawed-loss", "its update returned 'x' as a float; it returns 0-d tensors named in its loss_names", True),
+])
+def test_a_plugin_learner_that_a_run_could_not_save_resume_or_log_is_refused_in_one_line(kind, says, written,
+                                                                                           tmp_path):
+    plugin = tmp_path / "flawed.py"
+    plugin.write_text(FLAWED_LEARNERS)
+    proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", plugin, *TINY,
+                        f"layers.slow.learner.kind={kind}", "layers.fast.learner.hidden=[32, 32]", "--steps", 300,
+                        "--out", tmp_path / "run")
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("layered: error")]
+    assert proc.returncode == 2 and len(errors) == 1, proc.stderr
+    assert errors[0].startswith(f"layered: error: learner {kind!r} (layer 'slow'): ") and says in errors[0]
+    assert (tmp_path / "run").exists() == written  # (refused before the run starts where it can be)

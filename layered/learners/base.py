@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, Strict
 from torch import nn
 
 from layered.buffer import ReplayBuffer, Transition
+from layered.errors import BadInput
 from layered.outputs import OutputLayout
 from layered.registry import Registry
 
@@ -136,6 +137,54 @@ class Learner(ABC):
         """Restore what `resume_state` returned."""
         self.load_state_dict(state["policy"])
         self.rng.bit_generator.state = state["rng"]
+
+
+CHECKPOINTED = (torch.Tensor, bool, int, float, complex, str, bytes, type(None), torch.dtype, torch.device, torch.Size)
+"""What a checkpoint holds besides containers (dicts, lists, tuples, sets): what torch reads back weights-only."""
+
+
+def check_plugin_learner(learner: Learner, layer: str) -> None:
+    """Refuse, in one line and before a run starts, a plugin learner whose `state_dict` or `resume_state` holds what a
+    checkpoint cannot read back (a numpy array), or whose `load_state_dict` or `load_resume_state` cannot take what
+    they return: either would surface only at a phase's end or on resuming, after its training."""
+    kind = f"learner {learner.config.kind!r} (layer {layer!r})"
+    for method, state in (("state_dict", learner.state_dict()), ("resume_state", learner.resume_state())):
+        if (found := _unreadable(state, "")) is not None:
+            where, value = found
+            raise BadInput(f"{kind}: its {method}() holds a {type(value).__module__}.{type(value).__qualname__} at "
+                           f"{where or 'its top'}; a checkpoint holds tensors, Python numbers and strings, in dicts, "
+                           "lists and tuples (torch reads it back weights-only)")
+    for method, load in (("state_dict", learner.load_state_dict), ("resume_state", learner.load_resume_state)):
+        try:
+            load(getattr(learner, method)())
+        except Exception as e:
+            raise BadInput(f"{kind}: load_{method}() cannot take what {method}() returns ({type(e).__name__}: {e})"
+                           ) from None
+
+
+def checked_losses(learner: Learner, layer: str, losses: Losses) -> Losses:
+    """An update's `losses`, refused in one line unless each is one of the learner's `loss_names` and a tensor: a
+    plugin's loss of another name was dropped from the logs unsaid, and a Python number failed later, in a traceback."""
+    for name, value in losses.items():
+        if name not in type(learner).loss_names or not isinstance(value, torch.Tensor):
+            raise BadInput(f"learner {learner.config.kind!r} (layer {layer!r}): its update returned {name!r} as a "
+                           f"{type(value).__qualname__}; it returns 0-d tensors named in its loss_names "
+                           f"{type(learner).loss_names}")
+    return losses
+
+
+def _unreadable(value: Any, where: str) -> tuple[str, Any] | None:
+    """The first value in `value` (and where) that a checkpoint cannot read back, or None."""
+    if isinstance(value, dict):
+        items: Any = value.items()
+    elif isinstance(value, list | tuple | set | frozenset):
+        items = enumerate(value)
+    else:
+        return None if isinstance(value, CHECKPOINTED) else (where, value)
+    for key, item in items:
+        if (found := _unreadable(item, f"{where}[{key!r}]")) is not None:
+            return found
+    return None
 
 
 LEARNERS: Registry[type[Learner]] = Registry("learner", Learner)
