@@ -646,11 +646,15 @@ def _sweep(args: argparse.Namespace) -> int:
     if args.vectorize:
         from layered.group import check_group
         from layered.recipe import load_recipe
+        from layered.schema import RecipeError
 
         if args.backend == "ray":
             return _fail("--vectorize runs groups in local processes; it does not combine with --backend ray")
         for job in {job.label: job for job in jobs}.values():
-            check_group(load_recipe(job.recipe))
+            try:
+                check_group(load_recipe(job.recipe))
+            except RecipeError as e:
+                raise e.named(f"{job.label} (--vectorize)") from None
     if args.backend == "ray":
         try:
             outcomes = run_ray(jobs, args.address)

@@ -112,6 +112,10 @@ class Seed:
     state: LoopState = field(default_factory=LoopState)
 
 
+SEPARATELY = "train its seeds as runs of their own: `layered sweep` without --vectorize"
+"""Where a recipe cannot train as a group, what trains its seeds."""
+
+
 def check_group(recipe: Recipe) -> None:
     """Refuse, naming each key, what keeps a recipe from training as a group."""
     out = []
@@ -119,7 +123,7 @@ def check_group(recipe: Recipe) -> None:
         kind = recipe.learner_config(i).kind
         if kind not in STACKED:
             out.append((f"layers[{i}].learner.kind", f"layer {layer.name!r} uses the {kind!r} learner, which does "
-                        "not train as a group yet (train its seeds with `layered sweep`)"))
+                        f"not train as a group yet ({SEPARATELY})"))
             continue
         config = recipe.learner_config(i)
         assert isinstance(config, TD3Config), "every stacked learner is a kind of TD3"
@@ -128,11 +132,10 @@ def check_group(recipe: Recipe) -> None:
                         "('cudagraphs'), not compiled by inductor"))
         if config.actor_anchor:
             out.append((f"layers[{i}].learner.actor_anchor", "a group does not train with an actor anchor yet "
-                        "(train its seeds with `layered sweep`)"))
+                        f"({SEPARATELY})"))
     out += unavailable_settings(recipe)
     if (problem := _checkpoint_problem(recipe.env.id)) is not None:
-        out.append(("env.id", f"{problem}; a group checkpoints its environments mid-episode (train its seeds "
-                              "with `layered sweep`)"))
+        out.append(("env.id", f"{problem}; a group checkpoints its environments mid-episode ({SEPARATELY})"))
     if out:
         raise RecipeError(RecipeError.UNNAMED, out)
 

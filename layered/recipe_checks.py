@@ -18,7 +18,7 @@ def check_recipe(recipe: Recipe) -> list[tuple[str, str]]:
     """Problems no single field shows: names, periods, references, registries, learners, env."""
     problems = _check_layers(recipe) + _check_learners(recipe) + _check_training(recipe)
     if recipe.combine.kind not in COMBINERS:
-        problems.append(("combine.kind", f"unknown combiner {recipe.combine.kind!r}; known: {', '.join(COMBINERS)}"))
+        problems.append(("combine.kind", COMBINERS.unknown(recipe.combine.kind)))
     try:
         env_info(recipe.env.id)
     except KeyError as e:
@@ -56,7 +56,7 @@ def _check_layers(recipe: Recipe) -> list[tuple[str, str]]:
         if layer.combine is None:
             continue
         if layer.combine not in COMBINERS:
-            problems.append((f"{where}.combine", f"unknown combiner {layer.combine!r}; known: {', '.join(COMBINERS)}"))
+            problems.append((f"{where}.combine", COMBINERS.unknown(layer.combine)))
         elif i == len(names) - 1:
             problems.append((f"{where}.combine", "the fastest layer has no layer below to merge with; remove its "
                              "combine"))
@@ -144,7 +144,7 @@ def _check_training(recipe: Recipe) -> list[tuple[str, str]]:
     problems: list[tuple[str, str]] = []
     names = recipe.layer_names()
     if recipe.train.order not in ORDERS:
-        problems.append(("train.order", f"unknown order {recipe.train.order!r}; known: {', '.join(ORDERS)}"))
+        problems.append(("train.order", ORDERS.unknown(recipe.train.order)))
     elif recipe.train.order == "explicit" and not recipe.train.phases:
         problems.append(("train.phases", "the explicit order needs at least one [[train.phases]]"))
     elif recipe.train.phases and recipe.train.order in MAKE_OWN_PHASES:
@@ -161,7 +161,7 @@ def _check_learner(table: dict[str, Any]) -> list[tuple[str, str]]:
     """Problems of one layer's merged learner table, keyed relative to it."""
     kind = table.get("kind", "td3")
     if kind not in LEARNERS:
-        return [(".kind", f"unknown learner {kind!r}; known: {', '.join(LEARNERS)}")]
+        return [(".kind", LEARNERS.unknown(kind))]
     try:
         LEARNERS.get(kind).Config.model_validate({**table, "kind": kind})
     except ValidationError as e:

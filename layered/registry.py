@@ -61,10 +61,16 @@ class Registry(Generic[T]):
         return None
 
     def get(self, name: str) -> T:
-        """The entry called `name`, or a KeyError naming the known entries."""
+        """The entry called `name`, or a KeyError naming the known entries (`unknown`)."""
         if name not in self._entries:
-            raise KeyError(f"unknown {self.kind} {name!r}; known: {', '.join(sorted(self._entries))}")
+            raise KeyError(self.unknown(name))
         return self._entries[name]
+
+    def unknown(self, name: str) -> str:
+        """What to say of a name nothing is registered under: the known ones, and where one of the user's own comes
+        from."""
+        return (f"unknown {self.kind} {name!r}; known: {', '.join(sorted(self._entries))} (one of your own: load its "
+                "plugin with --plugin)")
 
     def name_of(self, entry: T) -> str:
         """The name `entry` is registered under, or a KeyError."""

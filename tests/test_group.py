@@ -161,7 +161,13 @@ def test_what_a_group_cannot_train_is_refused_before_anything_is_written(tmp_pat
     assert main(["train", str(ROOT / "docs/examples/pendulum-centre.toml"), "--plugin",
                  str(ROOT / "docs/examples/centre.py"), "--seeds", "2", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "'centre' learner" in err[0] and "layered sweep" in err[0]
+    assert len(err) == 1 and "'centre' learner" in err[0] and "layered sweep` without --vectorize" in err[0]
+    assert err[0].startswith(f"layered: error: {ROOT / 'docs/examples/pendulum-centre.toml'}: layers[0].learner.kind")
+    assert not out.exists()
+    assert main(["sweep", str(ROOT / "docs/examples/pendulum-centre.toml"), "--plugin",
+                 str(ROOT / "docs/examples/centre.py"), "--seeds", "2", "--vectorize", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("layered: error: examples/pendulum-centre (--vectorize): layers[0]")
     assert not out.exists()
     assert main(["train", str(ROOT / "recipes/pendulum/td3.toml"), "--seeds", "2", "--out", str(out),
                  "learner.compile=inductor", "learner.actor_anchor=0.1"]) == 2
