@@ -252,7 +252,7 @@ def _fail(message: str) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from layered.recipe import load_recipe, recipe_path
+    from layered.recipe import device_settings, load_recipe, recipe_path
     from layered.rundir import check_new_run_dir
     from layered.runs import train
 
@@ -260,8 +260,8 @@ def _train(args: argparse.Namespace) -> int:
         return _fail(f"give the seed once: {'--seed' if args.seed is not None else '--seeds'} or {given}, not both")
     overrides = list(args.overrides) + ([f"train.seed={args.seed}"] if args.seed is not None else [])
     overrides += ["log.tensorboard=true"] if args.tensorboard else []
-    overrides += [f"learner.device={args.device}"] if args.device else []
     plugins = load_plugins(args.plugin)
+    overrides += device_settings(args.recipe, overrides, args.device) if args.device else []
     if args.seeds is not None:
         return _train_group(args, overrides, plugins)
     recipe = load_recipe(args.recipe, overrides)
@@ -635,14 +635,13 @@ def _sweep(args: argparse.Namespace) -> int:
     overrides = [a for a in args.recipes if "=" in a] + args.overrides
     if given := _seed_override(overrides):
         return _fail(f"{given}: a sweep gives each run its seed (--seeds N: seeds 0..N-1)")
-    overrides += [f"learner.device={args.device}"] if args.device else []
     recipes = [a for a in args.recipes if "=" not in a]
     plugins = load_plugins(args.plugin)
     if args.group_size is not None and not args.vectorize:
         return _fail("--group-size cuts a setup's seeds into groups: it needs --vectorize")
     if args.threads is not None and args.backend == "ray":
         return _fail("--threads sets the threads of local processes; a Ray task computes on one thread")
-    jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins, args.group_size)
+    jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins, args.group_size, args.device)
     if args.vectorize:
         from layered.group import check_group
         from layered.recipe import load_recipe

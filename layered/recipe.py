@@ -63,6 +63,18 @@ def load_recipe(source: str | Path | Mapping[str, Any], overrides: Iterable[str]
     return recipe
 
 
+def device_settings(source: str | Path, overrides: Sequence[str], device: str) -> list[str]:
+    """`--device`: `layers.<name>.learner.device=<device>` for each layer whose learner has a device setting (a
+    plugin's may have none, and the shared `learner.device` would then be refused for its layer)."""
+    recipe = load_recipe(source, overrides)
+    names = [layer.name for i, layer in enumerate(recipe.layers)
+             if "device" in type(recipe.learner_config(i)).model_fields]
+    if not names:
+        raise RecipeError(recipe_label(source, overrides),
+                          [(None, f"--device {device}: no layer's learner has a device setting")])
+    return [f"layers.{name}.learner.device={device}" for name in names]
+
+
 def recipe_label(source: str | Path | Mapping[str, Any], overrides: Sequence[str] = ()) -> str:
     """How errors name a recipe: its file (`<recipe>` for a table), and whether the command line changed it."""
     label = "<recipe>" if isinstance(source, Mapping) else str(source)

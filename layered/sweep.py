@@ -30,7 +30,7 @@ from layered.interrupt import SIGNAL_NAMES
 from layered.ray_cluster import start_ray
 from layered.overrides import grid
 from layered.plugins import load_plugins
-from layered.recipe import RecipeError, load_recipe, recipe_path, resolved
+from layered.recipe import RecipeError, device_settings, load_recipe, recipe_path, resolved
 from layered.rundir import read_run_info, steps_option
 from layered.runstate import recipe_differences
 
@@ -57,8 +57,10 @@ class Outcome:
 
 
 def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequence[str] = (),
-         max_steps: int | None = None, plugins: Sequence[str] = (), group_size: int | None = None) -> list[Job]:
-    """The jobs of a sweep; every recipe is validated first, so a bad one stops it before any run.
+         max_steps: int | None = None, plugins: Sequence[str] = (), group_size: int | None = None,
+         device: str | None = None) -> list[Job]:
+    """The jobs of a sweep; every recipe is validated first, so a bad one stops it before any run; `device` (`--device`)
+    on every layer whose learner has a device setting.
 
     An override `key=a,b,c` gives a setup per value (several such keys: per combination, see
     `overrides.grid`). Run directories are `out/<recipe folder>/<recipe name>[/<key=value,...>]/seed<k>`,
@@ -75,7 +77,8 @@ def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequen
     for seed in range(seeds):
         for path in paths:
             for chosen, named in setups:
-                recipe = load_recipe(path, [*chosen, f"train.seed={seed}"])
+                on_device = device_settings(path, chosen, device) if device else []
+                recipe = load_recipe(path, [*chosen, *on_device, f"train.seed={seed}"])
                 folder = out / labels[path] / ",".join(named).replace("/", "_") if named else out / labels[path]
                 if group_size is not None:
                     first = seed - seed % group_size

@@ -146,3 +146,16 @@ def test_a_plugin_learner_that_a_run_could_not_save_resume_or_log_is_refused_in_
     assert proc.returncode == 2 and len(errors) == 1, proc.stderr
     assert errors[0].startswith(f"layered: error: learner {kind!r} (layer 'slow'): ") and says in errors[0]
     assert (tmp_path / "run").exists() == written  # (refused before the run starts where it can be)
+
+
+def test_device_is_set_on_the_layers_whose_learner_has_one(tmp_path):
+    from layered.plugins import load_plugin
+    from layered.sweep import plan
+
+    load_plugin(str(EXAMPLES / "centre.py"))
+    jobs = plan([EXAMPLES / "pendulum-centre.toml"], 1, tmp_path / "sweep", device="cuda")  # (planned, not run)
+    layers = jobs[0].recipe["layers"]
+    assert "device" not in layers[0]["learner"] and layers[1]["learner"]["device"] == "cuda"
+    proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", EXAMPLES / "centre.py", "--device", "cpu",
+                        "layers.fast.learner.kind=centre", "--out", tmp_path / "run")
+    assert proc.returncode == 2 and "--device cpu: no layer's learner has a device setting" in proc.stderr
