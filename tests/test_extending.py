@@ -156,6 +156,6 @@ def test_device_is_set_on_the_layers_whose_learner_has_one(tmp_path):
     jobs = plan([EXAMPLES / "pendulum-centre.toml"], 1, tmp_path / "sweep", device="cuda")  # (planned, not run)
     layers = jobs[0].recipe["layers"]
     assert "device" not in layers[0]["learner"] and layers[1]["learner"]["device"] == "cuda"
-    proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", EXAMPLES / "centre.py", "--device", "cpu",
-                        "layers.fast.learner.kind=centre", "--out", tmp_path / "run")
+    proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", EXAMPLES / "centre.py",
+                        "--device", "cpu", "layers.fast.learner.kind=centre", "--out", tmp_path / "run")
     assert proc.returncode == 2 and "--device cpu: no layer's learner has a device setting" in proc.stderr
