@@ -30,6 +30,18 @@ from layered.group import Group  # noqa: E402
 from layered import Recipe, load_recipe  # noqa: E402
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--plugin", action="append", default=[], metavar="FILE",
+                     help="a plugin (file or module) whose entries tests/test_registries.py checks too")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    from layered.plugins import load_plugin
+
+    for spec in config.getoption("--plugin"):  # (before collection: the registry tests are parametrised over them)
+        load_plugin(spec)
+
+
 def stack_recipe(periods: list[int], kinds: list[str] | str = "residual-clip", env: str = "Pendulum-v1",
                  **extra: Any) -> Recipe:
     """A recipe whose layers l0 (slowest) .. lN-1 have `periods`; each sees obs and every slower layer."""

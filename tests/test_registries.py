@@ -14,7 +14,7 @@ from layered import load_recipe, make_aec_env
 from layered.buffer import Transition
 from layered.combiners import COMBINERS, Gate
 from layered.envs import FAMILIES
-from layered.learners import LEARNERS
+from layered.learners import LEARNERS, Learner
 from layered.orders import ORDERS
 from layered.outputs import OutputLayout
 from layered.replay_journal import ReplayJournal
@@ -69,6 +69,8 @@ def test_learner_save_load_gives_identical_actions(name):
 def test_learner_policy_module_acts_as_act(name):
     """What `layered export` writes is what the learner does at evaluation."""
     learner = make_learner(name, 1)
+    if type(learner).policy is Learner.policy:  # (a plugin's may have none: `layered export` then refuses its layer)
+        pytest.skip(f"the {name!r} learner has no exportable policy")
     behaviour(learner)
     policy = learner.policy()
     for x in np.linspace(-1, 1, 9):
@@ -86,7 +88,8 @@ def test_learner_greedy_batch_is_its_greedy_act_row_by_row(name):
     rows = np.stack([learner.act(o, False) for o in obs])
     assert batch.shape == rows.shape and batch.dtype == np.float32
     assert np.allclose(batch, rows, atol=1e-6)
-    assert len({tuple(row) for row in rows.round(4)}) > 1  # (distinct observations give distinct outputs)
+    if type(learner).__module__.startswith("layered."):  # (a plugin's may act alike everywhere, as centre.py does)
+        assert len({tuple(row) for row in rows.round(4)}) > 1  # (distinct observations give distinct outputs)
 
 
 def through_a_file(state):
