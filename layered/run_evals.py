@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -72,6 +73,25 @@ class TrainedRun:
         return folder
 
 
+def load_run_plugins(run_dir: Path, given: Sequence[str] = ()) -> None:
+    """Import the plugins a run was trained with, and `given` (`--plugin`) first: a plugin file that has moved since
+    is found in its new place where `given` names it."""
+    from layered.plugins import PluginError, load_plugin
+    from layered.rundir import run_plugins
+
+    load_plugins(given)
+    for spec in run_plugins(run_dir):
+        try:
+            load_plugin(spec)
+        except PluginError as e:
+            if not spec.endswith(".py") or Path(spec).exists():
+                raise
+            if not given:
+                raise PluginError(f"{e} (the run was trained with it: give its new place with --plugin)") from None
+            print(f"layered: note: {spec}, a plugin {run_dir} was trained with, is no longer there; using "
+                  f"{', '.join(given)} in its place", file=sys.stderr)
+
+
 def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | None = None,
              unfinished: bool = False) -> TrainedRun:
     """The run in `run_dir` with its last phase's `final` or `best` weights (default: its train.select; the
@@ -81,9 +101,9 @@ def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | Non
     their weights at that checkpoint)."""
     from layered.learner_set import load_learners
     from layered.orders import phases_of
-    from layered.rundir import RunDirError, run_plugins, warn_if_being_written, writer
+    from layered.rundir import RunDirError, warn_if_being_written, writer
 
-    load_plugins(run_plugins(run_dir) + list(plugins or []))  # refuses a directory that holds no run
+    load_run_plugins(run_dir, plugins or [])  # (refuses a directory that holds no run)
     recipe = load_recipe(run_dir / "recipe.toml")
     if (run_dir / "results.json").exists():
         warn_if_being_written(run_dir)
@@ -226,9 +246,7 @@ def missing_figure_evals(run_dir: Path) -> list[str]:
     """What `layered report` would evaluate for this run: a threshold sweep where a threshold
     applies and none is kept, a gallery of the fastest layer where a stack has several layers."""
     from layered.orders import phases_of
-    from layered.rundir import run_plugins
-
-    load_plugins(run_plugins(run_dir))  # (its recipe may name what they register)
+    load_run_plugins(run_dir)  # (its recipe may name what they register)
     recipe = load_recipe(run_dir / "recipe.toml")
     missing = []
     kept = run_dir / "eval" / SWEEP_FILE

@@ -159,3 +159,20 @@ def test_device_is_set_on_the_layers_whose_learner_has_one(tmp_path):
     proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", EXAMPLES / "centre.py",
                         "--device", "cpu", "layers.fast.learner.kind=centre", "--out", tmp_path / "run")
     assert proc.returncode == 2 and "--device cpu: no layer's learner has a device setting" in proc.stderr
+
+
+def test_a_run_whose_plugin_file_has_moved_is_given_its_new_place_with_plugin(tmp_path):
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "layered.cli", *map(str, args)], capture_output=True, text=True)
+
+    (tmp_path / "before").mkdir()
+    plugin = tmp_path / "before" / "deadband.py"
+    plugin.write_text((EXAMPLES / "deadband.py").read_text())
+    out = tmp_path / "run"
+    assert cli("train", EXAMPLES / "pendulum-deadband.toml", *TINY, *SMALL_TD3, "--steps", 100, "--out", out,
+               "--plugin", plugin).returncode == 0
+    moved = plugin.rename(tmp_path / "deadband.py")
+    lost = cli("eval", out, "--episodes", 1)
+    assert lost.returncode == 2 and "give its new place with --plugin" in lost.stderr
+    found = cli("eval", out, "--episodes", 1, "--plugin", moved)
+    assert found.returncode == 0 and "is no longer there; using" in found.stderr
