@@ -94,23 +94,11 @@ FLAWED_LEARNERS = '''
 import numpy as np
 import torch
 
-from layered.learners import LEARNERS, Learner, LearnerConfig
+from layered.learners import LEARNERS, LearnerConfig
 
 
-class Flawed(Learner):
+class Flawed(LEARNERS.get("centre")):  # (docs/examples/centre.py, loaded first)
     loss_names = ("x",)
-
-    def act(self, obs, explore):
-        return np.zeros(self.action_space.shape, np.float32)
-
-    def act_macs(self):
-        return 0
-
-    def observe(self, transition):
-        pass
-
-    def update(self):
-        return None
 
     def state_dict(self):
         return {"w": torch.zeros(2)}
@@ -139,9 +127,9 @@ def test_a_plugin_learner_that_a_run_could_not_save_resume_or_log_is_refused_in_
                                                                                            tmp_path):
     plugin = tmp_path / "flawed.py"
     plugin.write_text(FLAWED_LEARNERS)
-    proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", plugin, *TINY,
-                        f"layers.slow.learner.kind={kind}", "layers.fast.learner.hidden=[32, 32]", "--steps", 300,
-                        "--out", tmp_path / "run")
+    proc = layered_here("train", EXAMPLES / "pendulum-centre.toml", "--plugin", EXAMPLES / "centre.py",
+                        "--plugin", plugin, *TINY, f"layers.slow.learner.kind={kind}",
+                        "layers.fast.learner.hidden=[32, 32]", "--steps", 300, "--out", tmp_path / "run")
     errors = [line for line in proc.stderr.splitlines() if line.startswith("layered: error")]
     assert proc.returncode == 2 and len(errors) == 1, proc.stderr
     assert errors[0].startswith(f"layered: error: learner {kind!r} (layer 'slow'): ") and says in errors[0]
