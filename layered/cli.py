@@ -443,10 +443,17 @@ def _eval_group(args: argparse.Namespace) -> int:
                                                                                               strict=True)]
     print(results_table([{**row, "phase": run.path.name} for run, (row, _) in zip(runs, written, strict=True)]))
     returns = [result.return_mean for result in results]
-    print(f"over the {len(runs)} seeds: return {statistics.fmean(returns):.1f} ± {statistics.pstdev(returns):.1f}")
     names = {path.relative_to(run.path) for run, (_, path) in zip(runs, written, strict=True)}
-    print(f"written to {written[0][1]}, and to the same name in each seed's run directory" if len(names) == 1 else
-          f"written to {written[0][1]} and to each seed's own eval folder (its weights named by its own best step)")
+    same = len(names) == 1  # (else each seed's weights are named by its own best step)
+    over = args.run_dir / (names.pop() if same else Path("eval") / written[0][1].name)  # the seeds' mean, kept
+    over.parent.mkdir(parents=True, exist_ok=True)
+    over.write_text(json.dumps({"seeds": [run.recipe.train.seed for run in runs], "returns": returns,
+                                "return_mean": statistics.fmean(returns), "return_std": statistics.pstdev(returns),
+                                "files": [str(path.relative_to(args.run_dir)) for _, path in written]}, indent=2))
+    print(f"over the {len(runs)} seeds: return {statistics.fmean(returns):.1f} ± {statistics.pstdev(returns):.1f} "
+          f"(population std): {over}")
+    print(f"each seed's row: {written[0][1]}, " + ("and the same name in each seed's run directory" if same else
+                                                    "and each seed's own eval folder (weights named by its best step)"))
     return 0
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import os
 import re
 import shutil
 import textwrap
@@ -226,11 +227,18 @@ def wide_table(setups: Sequence[Any], metrics: Sequence[Metric]) -> str:
     return "\n".join(lines)
 
 
-def seeds_table(setups: Sequence[Any]) -> str:
-    """Which runs make up each setup: the traceability of every number in the tables."""
+def from_report(out: Path, path: Path) -> str:
+    """`path` as the report in `out` names it: relative to the report's directory, so that it can be followed from
+    report.md wherever the report was made from."""
+    return os.path.relpath(path.resolve(), out.resolve())
+
+
+def seeds_table(setups: Sequence[Any], out: Path) -> str:
+    """Which runs make up each setup (their directories relative to the report's, `out`): the traceability of every
+    number in the tables."""
     lines = ["| environment | setup | seed ids | run directories |", "|---|---|---|---|"]
     for s in setups:
-        dirs = ", ".join(str(r.path) if r.finished else f"{r.path} ({r.stands})" for r in s.runs)
+        dirs = ", ".join(from_report(out, r.path) + ("" if r.finished else f" ({r.stands})") for r in s.runs)
         setup = s.label + (f" ({', '.join(s.runs[0].unnamed)})" if s.runs[0].unnamed else "") + \
             ("" if s.runs[0].finished else " (unfinished)")
         lines.append(f"| {s.env} | {setup} | {', '.join(str(r.seed) for r in s.runs)} | {dirs} |")
@@ -260,15 +268,15 @@ def per_seed_table(setup: Any) -> str:
 
 def write_seeds_csv(setups: Sequence[Any], path: Path) -> None:
     """Every phase of every run on a row of its own (setup, seed, phase, what it learned and every measure of
-    `results.json`), for analyses of one's own."""
+    `results.json`, and the run's directory relative to the report's), for analyses of one's own."""
     rows = [(s, r, p) for s in setups for r in s.runs for p in (r.phases or (r.final,))]
     keys = sorted({k for _, _, p in rows for k, v in p.items() if k != "phase" and not np.isnan(number(v))})
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["env", "label", "method", "seed", "phase", "learn", *keys])
+        writer.writerow(["env", "label", "method", "seed", "phase", "learn", *keys, "run"])
         for s, r, p in rows:
             writer.writerow([s.env, s.label, s.method, r.seed, p.get("phase", ""), "+".join(p.get("learn", [])),
-                             *(p.get(k, "") for k in keys)])
+                             *(p.get(k, "") for k in keys), from_report(path.parent, r.path)])
 
 
 CURVE_FRACTIONS = (0.1, 0.25, 0.5, 0.75, 1.0)
@@ -381,13 +389,17 @@ def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str
             } for t in common]
             name = f"threshold-{_slug(s)}.png"
             plot_threshold_sweep(rows, out / name, f"{s.env} {s.method}: threshold ({count(len(sweeps), 'seed')})")
+            with (out / name).with_suffix(".csv").open("w", newline="") as f:  # (the figure's points)
+                writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+                writer.writeheader()
+                writer.writerows(rows)
             parts += [f"### Return and action frequency against the threshold: {s.env}, {s.method}", "",
                       f"![threshold sweep]({name})", ""]
         galleries = sorted(p for r in s.runs for p in (r.path / "eval").glob("gallery-*.png"))
         if galleries:
             name = f"gallery-{_slug(s)}.png"
             shutil.copyfile(galleries[0], out / name)
-            parts += [f"### States where a layer acts: {s.env}, {s.method} ({galleries[0]})", "",
+            parts += [f"### States where a layer acts: {s.env}, {s.method} ({from_report(out, galleries[0])})", "",
                       f"![gallery]({name})", ""]
     return parts
 
@@ -459,7 +471,7 @@ def write_report(setups: Sequence[Any], out: Path) -> str:
               "unfinished one) and at its end. Every point of both figures is a row of `curves.csv`.", "",
               curve_table(setups), ""]
     parts += _threshold_and_gallery_figures(setups, out)
-    parts += ["## Runs", "", seeds_table(setups), ""]
+    parts += ["## Runs", "", seeds_table(setups, out), ""]
     text = "\n".join(parts)
     (out / "report.md").write_text(text)
     keys = sorted({k for s in setups for r in s.runs for k in r.final if k != "phase"})

@@ -147,7 +147,13 @@ def test_a_group_writes_each_seed_an_ordinary_run_directory_and_writes_it_again_
         again = json.loads((tmp_path / f"a/seed{seed}/eval/weights-final/fresh/"
                             "threshold-recipe-episodes-1-group.json").read_text())
         assert {k: again[k] for k in FRESH_MEASURES} == {k: final[f"fresh_final_{k}"] for k in FRESH_MEASURES}
-    assert "seed2 " in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    over = json.loads((tmp_path / "a/eval/weights-final/fresh/threshold-recipe-episodes-1-group.json").read_text())
+    returns = [json.loads((tmp_path / f"a/seed{seed}/results.json").read_text())["phases"][-1][
+        "fresh_final_return_mean"] for seed in (2, 5)]
+    assert over["seeds"] == [2, 5] and over["returns"] == returns  # the line over the seeds, kept in the group's
+    assert f"over the 2 seeds: return {statistics.fmean(returns):.1f} ± {statistics.pstdev(returns):.1f}" in printed
+    assert "seed2 " in printed
     assert main(["eval", str(tmp_path / "a"), "--video"]) == 2
     assert "--video: of one run" in capsys.readouterr().err
     assert main(["report", str(tmp_path / "a"), "--out", str(tmp_path / "report")]) == 0
