@@ -1,4 +1,4 @@
-"""Learning checks on the paper's Pendulum budgets: `pytest -m learning` (CI's learning step, TLA-C: 13 minutes
+"""Learning checks on the authors' Pendulum budgets: `pytest -m learning` (CI's learning step, TLA-C: 13 minutes
 on 2 cores where the CPU trains in float32), and longer ones on request with
 `pytest -m slow` (TD3 at its budget beside it, TLA-O)."""
 
