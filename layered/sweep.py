@@ -18,6 +18,7 @@ import time
 import tomllib
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -295,9 +296,20 @@ def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False,
     try:
         with ProcessPoolExecutor(max_workers=processes, mp_context=context,
                                  initializer=_init_worker, initargs=(os.getpid(), stop.event, cores, threads)) as pool:
-            futures = [pool.submit(run_group if vectorize else _one, task) for task in tasks(jobs, vectorize)]
+            # (the workers start with the sweep's signals blocked, until they are in sessions of their own: a Ctrl-C
+            # at the terminal while they start reaches the sweep alone, which holds it until they are started)
+            signal.pthread_sigmask(signal.SIG_BLOCK, set(SIGNAL_NAMES))
+            try:
+                futures = {pool.submit(run_group if vectorize else _one, task): task
+                           for task in tasks(jobs, vectorize)}
+            finally:
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, set(SIGNAL_NAMES))
             for future in as_completed(futures):
-                for outcome in future.result():
+                try:
+                    done = future.result()
+                except BrokenProcessPool:  # a worker killed (kill -9, out of memory), or by a Ctrl-C while starting
+                    done = [_cut_short(job, stop) for job in futures[future]]
+                for outcome in done:
                     outcomes.append(outcome)
                     bar.update()
                     bar.write(f"{outcome.status:>11}  {outcome.job.out}: {outcome.detail}")
@@ -306,6 +318,15 @@ def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False,
             signal.signal(s, handler)
         bar.close()
     return outcomes, stop
+
+
+def _cut_short(job: Job, stop: SweepStop) -> Outcome:
+    """What became of a job whose worker process ended before it told (the pool then stops every worker): stopped,
+    or failed where no signal came to the sweep; either way the same command continues it."""
+    if stop.received:
+        return Outcome(job, "stopped", f"by {stop.received[0]}, as its worker was starting or at once")
+    return Outcome(job, "failed", "a worker process of the sweep ended unexpectedly (killed, or out of memory?); "
+                                  "the same command continues it from its last checkpoint")
 
 
 def _init_worker(sweep_pid: int, stop: Any, cores: int, threads: int | None = None) -> None:
@@ -320,6 +341,7 @@ def _init_worker(sweep_pid: int, stop: Any, cores: int, threads: int | None = No
     os.setsid()
     for s in SIGNAL_NAMES:  # between runs, the sweep's signals are for runs that are not started: nothing to stop
         signal.signal(s, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, set(SIGNAL_NAMES))  # (blocked while it started: see run_local)
     os.environ["OMP_NUM_THREADS"] = "1"  # for the processes it starts (a group's environment workers)
     share_cores(cores)
     threading.Thread(target=_exit_when_orphaned, args=(sweep_pid,), daemon=True).start()

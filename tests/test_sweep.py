@@ -261,3 +261,24 @@ def test_a_vectorised_sweep_trains_each_setups_seeds_as_one_group(tmp_path):
     refused = layered_here("sweep", examples / "pendulum-centre.toml", "--plugin", examples / "centre.py",
                            "--vectorize", "--out", tmp_path / "t")
     assert refused.returncode == 2 and "'centre' learner" in refused.stderr and not (tmp_path / "t").exists()
+
+
+def test_a_sweep_whose_worker_is_killed_says_so_in_a_line_per_run_and_the_same_command_continues(tmp_path):
+    """A worker killed (kill -9, the out-of-memory killer) broke the pool: the sweep ended in a traceback, saying
+    nothing of the runs it had."""
+    killer = tmp_path / "killer.py"
+    killer.write_text("import multiprocessing, os, signal\n\n"
+                      "if multiprocessing.parent_process() is not None and not os.path.exists(os.environ['SPARED']):\n"
+                      "    os.kill(os.getpid(), signal.SIGKILL)  # (a sweep's worker, as it loads the run's plugins)\n")
+    out, spared = tmp_path / "sw", tmp_path / "spared"
+    args = (PENDULUM / "td3.toml", *TINY, "--seeds", 1, "--jobs", 1, "--steps", 100, "--out", out, "--plugin", killer)
+    os.environ["SPARED"] = str(spared)
+    try:
+        proc = sweep(*args)
+        assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert "failed  " in proc.stdout and "a worker process of the sweep ended unexpectedly" in proc.stdout
+        spared.touch()
+        again = sweep(*args)
+    finally:
+        del os.environ["SPARED"]
+    assert again.returncode == 0 and "1 of 1 runs finished" in again.stdout, again.stderr
