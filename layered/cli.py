@@ -44,6 +44,9 @@ def _threshold(text: str) -> float:
     return value
 
 
+THRESHOLD_HELP = "evaluation threshold as a fraction of max action (default: the recipe's)"
+
+
 def _thresholds(text: str) -> list[float]:
     return [_threshold(x.strip()) for x in text.split(",") if x.strip()]
 
@@ -130,7 +133,8 @@ def _parser() -> argparse.ArgumentParser:
                         "settings --set changes")
     rs.add_argument("run_dir", type=Path, help="run directory of a stopped run, or of a stopped group or its seeds")
     rs.add_argument("--steps", type=_positive, help="must be the --steps the run was started with (a check)")
-    rs.add_argument("--threads", type=_positive, help="torch threads (use 1 per process when running several)")
+    rs.add_argument("--threads", type=_positive, help="torch threads (default: those the run trained with, at most "
+                    "this machine's cores)")
     rs.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
                     help="continue with a changed setting (a layer's learner settings, action_penalty, updates), "
                     "e.g. --set layers.fast.learner.lr=1e-4 after a divergence; in every seed of a group; recorded "
@@ -140,7 +144,7 @@ def _parser() -> argparse.ArgumentParser:
                     "the phase under way at its best weights so far), or a group's directory: every seed evaluated "
                     "as the group evaluates them, their learners stacked")
     ev.add_argument("--episodes", type=_positive, help="episodes (default: the recipe's eval.episodes)")
-    ev.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
+    ev.add_argument("--threshold", type=_threshold, help=THRESHOLD_HELP)
     ev.add_argument("--weights", choices=["final", "best"],
                     help="the last phase's final weights or those of its best evaluation (default: the recipe's "
                     "train.select; layers of earlier phases as they were handed on); of a run not finished, final "
@@ -171,7 +175,7 @@ def _parser() -> argparse.ArgumentParser:
     ex.add_argument("--weights", choices=["final", "best"],
                     help="the last phase's final or best weights (default: the recipe's train.select; layers of "
                     "earlier phases as they were handed on)")
-    ex.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
+    ex.add_argument("--threshold", type=_threshold, help=THRESHOLD_HELP)
     ex.add_argument("--episodes", type=_positive, default=3,
                     help="episodes on which the export is checked against the library and timed (default 3)")
     _plugin_option(ex, "besides those the run was trained with")
@@ -214,7 +218,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="times real time, one setting per value (default 1)")
     dp.add_argument("--lockstep", action="store_true",
                     help="also (or, without --speed, only) a setting without a clock, as fast as the layers answer: "
-                    "the driver waits for every answer, and must execute layered eval's actions")
+                    "the driver waits for every answer, and must execute layered eval's actions (unless a --fault is "
+                    "injected)")
     dp.add_argument("--episodes", type=_positive, default=3, help="episodes per setting (default 3)")
     dp.add_argument("--link-delay", action="append", default=[], metavar="[LAYER=]5ms±2ms",
                     help="delay each message to and from a layer (every layer without LAYER=); repeatable")
@@ -226,7 +231,7 @@ def _parser() -> argparse.ArgumentParser:
     dp.add_argument("--weights", choices=["final", "best"],
                     help="the last phase's final or best weights (default: the recipe's train.select; layers of "
                     "earlier phases as they were handed on)")
-    dp.add_argument("--threshold", type=_threshold, help="evaluation threshold as a fraction of max action")
+    dp.add_argument("--threshold", type=_threshold, help=THRESHOLD_HELP)
     dp.add_argument("--out", type=Path, help="where to write (default RUN_DIR/deploy)")
     dp.add_argument("--transport", choices=["process", "ray"], default="process",
                     help="each layer a local process (default) or a Ray actor (extra layered-control[ray])")
@@ -326,14 +331,27 @@ def _resume(args: argparse.Namespace) -> int:
     _threads_as_trained(args, info)
     results = args.run_dir / "results.json"
     if results.exists() and (_readable(results) or not (args.run_dir / RUN_CHECKPOINT).exists()):
-        print(f"{args.run_dir} has finished; nothing to resume", file=sys.stderr)
-        return 0
+        return _nothing_to_resume(args, info, f"{args.run_dir} has finished")
     if results.exists():
         print(f"layered: {results} is damaged; writing the run's results again from its last checkpoint",
               file=sys.stderr)
     print(f"resuming {args.run_dir}", file=sys.stderr)
     resume(args.run_dir, max_steps=args.steps, settings=args.settings)
     return _finished(args.run_dir)
+
+
+def _nothing_to_resume(args: argparse.Namespace, info: RunInfo, finished: str) -> int:
+    """A finished run or group resumed: nothing to do (0), but for what the command asked that a stopped one would
+    have refused or changed (2): another --steps, a --set."""
+    from layered.rundir import steps_option
+
+    if args.steps is not None and args.steps != info.max_steps:
+        return _fail(f"{finished}; it was started with {steps_option(info.max_steps)}, not {steps_option(args.steps)}")
+    if args.settings:
+        return _fail(f"{finished}; --set changes the settings a stopped run continues with, and a finished one "
+                     "continues no further")
+    print(f"{finished}; nothing to resume", file=sys.stderr)
+    return 0
 
 
 def _readable(path: Path) -> bool:
@@ -353,8 +371,7 @@ def _resume_group(args: argparse.Namespace, directory: Path) -> int:
     load_plugins(info.plugins)
     _threads_as_trained(args, info)
     if all((out / "results.json").exists() for out in seed_dirs(directory, info.group)):
-        print(f"the group in {directory} has finished; nothing to resume", file=sys.stderr)
-        return 0
+        return _nothing_to_resume(args, info, f"the group in {directory} has finished")
     print(f"resuming the group of seeds {list(info.group)} in {directory}", file=sys.stderr)
     return _group_finished(directory, info.group, resume_group(directory, max_steps=args.steps,
                                                                settings=args.settings))
@@ -646,6 +663,8 @@ def _sweep(args: argparse.Namespace) -> int:
     plugins = load_plugins(args.plugin)
     if args.group_size is not None and not args.vectorize:
         return _fail("--group-size cuts a setup's seeds into groups: it needs --vectorize")
+    if args.address and args.backend != "ray":
+        return _fail("--address names a Ray cluster: give it with --backend ray")
     if args.threads is not None and args.backend == "ray":
         return _fail("--threads sets the threads of local processes; a Ray task computes on one thread")
     jobs = plan(recipes, args.seeds, args.out, overrides, args.steps, plugins, args.group_size, args.device)
@@ -701,7 +720,11 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     args, extra = parser.parse_known_args(argv)
     unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command not in ("train", "sweep")]
     if unknown:
-        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+        hint = (" (a stopped run's setting is changed with --set KEY=VALUE)" if args.command == "resume" and
+                any("=" in a and not a.startswith("-") for a in unknown) else "")
+        print(f"layered: error: unrecognized arguments: {' '.join(unknown)}{hint} (see layered {args.command} --help)",
+              file=sys.stderr)
+        raise SystemExit(EXIT_BAD_INPUT)
     args.overrides = extra
     return args
 

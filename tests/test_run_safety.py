@@ -170,6 +170,11 @@ def test_a_finished_runs_damaged_results_are_written_again_by_resume(tmp_path, c
     assert "results.json is damaged; writing the run's results again" in capsys.readouterr().err
     assert (run / "results.json").read_bytes() == whole
     assert main(["resume", str(run)]) == 0 and "has finished; nothing to resume" in capsys.readouterr().err
+    # what a stopped run would have refused or changed is said of a finished one too
+    assert main(["resume", str(run), "--steps", "300"]) == 2
+    assert "it was started with --steps 200, not --steps 300" in capsys.readouterr().err
+    assert main(["resume", str(run), "--set", "layers.fast.learner.lr=1e-4"]) == 2
+    assert "a finished one continues no further" in capsys.readouterr().err
 
 
 def test_force_deletes_nothing_in_a_directory_that_holds_files_of_another_kind(tmp_path, capsys):
