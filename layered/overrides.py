@@ -79,7 +79,13 @@ def split_values(text: str) -> list[str]:
 def grid(overrides: Sequence[str]) -> list[tuple[list[str], list[str]]]:
     """The setups that overrides span: each `key=a,b,c` is an axis of values, and every combination of
     one value per axis is a setup (the product, the first axis slowest). Per setup: all its overrides,
-    and those of the axes (what names the setup; none when no key has several values)."""
+    and those of the axes (what names the setup; none when no key has several values), by key, each number as
+    Python writes it (`setup_name`), so that the same setups written otherwise get the same names."""
+    return [(chosen, sorted(setup_name(option) for option in named)) for chosen, named in written_grid(overrides)]
+
+
+def written_grid(overrides: Sequence[str]) -> list[tuple[list[str], list[str]]]:
+    """`grid`, its setups named as the command line wrote them (how sweeps named their setups before)."""
     axes = []
     for override in overrides:
         key, sep, text = override.partition("=")
@@ -90,3 +96,11 @@ def grid(overrides: Sequence[str]) -> list[tuple[list[str], list[str]]]:
         varies = len(options) > 1
         setups = [([*chosen, option], named + [option] * varies) for chosen, named in setups for option in options]
     return setups
+
+
+def setup_name(option: str) -> str:
+    """`key=value` with the key stripped and a number written as Python writes it (`0.50` and `5e-1`: `0.5`)."""
+    key, _, text = option.partition("=")
+    value = _parse_value(text)
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    return f"{key.strip()}={value!r}" if number else f"{key.strip()}={text.strip()}"

@@ -220,6 +220,17 @@ def test_comma_separated_values_make_a_grid_of_setups_each_reported_on_its_own(t
     assert split_values('[32, 32],"a,b",{x = 1, y = 2},3') == ["[32, 32]", '"a,b"', "{x = 1, y = 2}", "3"]
     assert [named for _, named in grid(["a=1,2", "b=[1, 2]", "c=x,y"])] == [
         ["a=1", "c=x"], ["a=1", "c=y"], ["a=2", "c=x"], ["a=2", "c=y"]]
+    # the same setups written otherwise (another key order, numbers written otherwise) get the same names
+    def names(overrides):
+        return sorted(",".join(named) for _, named in grid(overrides))
+
+    assert names(["c=x", "b=0.50,1e-3", "a=1,2"]) == names(["a=1,2", "b=5e-1,0.001"]) == [
+        "a=1,b=0.001", "a=1,b=0.5", "a=2,b=0.001", "a=2,b=0.5"]
+    legacy = tmp_path / "legacy" / "pendulum" / "tla-c" / "learner.lr=1e-3"  # (named as written, by a sweep before)
+    legacy.mkdir(parents=True)
+    folders = {str(job.out.parent.relative_to(tmp_path / "legacy")) for job in plan(
+        [PENDULUM / "tla-c.toml"], 1, tmp_path / "legacy", [*TINY, "learner.lr=1e-3,3e-4"], 300)}
+    assert folders == {"pendulum/tla-c/learner.lr=1e-3", "pendulum/tla-c/learner.lr=0.0003"}
     out = tmp_path / "grid"
     jobs = plan([PENDULUM / "tla-c.toml"], 2, out, [*TINY, "layers.fast.action_penalty=0.5,2"], 300)
     assert sorted(str(job.out.relative_to(out)) for job in jobs) == [
