@@ -717,6 +717,9 @@ def main(argv: list[str] | None = None) -> int:
 def parse(argv: list[str] | None = None) -> argparse.Namespace:
     """The command line's arguments, its `key=value` settings as `overrides`; a usage error exits with 2."""
     parser = _parser()
+    if not (sys.argv[1:] if argv is None else argv):  # a bare `layered`: what it can do
+        parser.print_help(sys.stderr)
+        raise SystemExit(EXIT_BAD_INPUT)
     args, extra = parser.parse_known_args(argv)
     unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command not in ("train", "sweep")]
     if unknown:

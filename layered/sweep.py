@@ -291,7 +291,8 @@ def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False,
     which tells them what to do (see SweepStop).
     """
     outcomes = []
-    bar = tqdm(total=len(jobs), desc="sweep", unit="run", file=sys.stderr)
+    bar = tqdm(total=len(jobs), desc="sweep", unit="run", file=sys.stderr,
+               disable=not sys.stderr.isatty())  # (in a log file, the outcome lines alone: no carriage returns)
     context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state forked
     stop = SweepStop(context.Event())
     before = {s: signal.signal(s, stop) for s in SIGNAL_NAMES}

@@ -271,3 +271,10 @@ def test_the_package_names_load_when_first_used_and_are_what_their_modules_defin
     for name in layered.__all__:
         assert getattr(layered, name) is getattr(importlib.import_module(layered._HOMES[name]), name)
     assert issubclass(layered.RecipeError, layered.BadInput)
+
+
+def test_a_bare_layered_prints_what_it_can_do(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main([])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and err.startswith("usage: layered") and "{train,resume,eval" in err
