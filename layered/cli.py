@@ -74,6 +74,14 @@ def _positive(text: str) -> int:
     return value
 
 
+def _seed_count(text: str) -> int:
+    """A sweep's `--seeds`: a count N (seeds 0..N-1)."""
+    if not text.strip().isdigit() and ("-" in text.strip("-") or "," in text):
+        raise argparse.ArgumentTypeError(f"a sweep takes a count N (seeds 0..N-1), got {text!r}; for other seeds, "
+                                         "`layered train RECIPE --seeds A-B` trains them as one group")
+    return _positive(text)
+
+
 MAX_GROUP = 4096  # seeds in one group: more would not fit one process's memory anyway
 
 
@@ -188,7 +196,8 @@ def _parser() -> argparse.ArgumentParser:
         "directory; finished runs are skipped and stopped ones resume; then: layered report DIR",
     )
     sw.add_argument("recipes", nargs="+", metavar="RECIPE", help="recipe files (and key=value overrides)")
-    sw.add_argument("--seeds", type=_positive, default=3, help="seeds 0..N-1 (default 3)")
+    sw.add_argument("--seeds", type=_seed_count, default=3, metavar="N",
+                    help="seeds 0..N-1 of every setup (default 3); a count, where train --seeds also takes A-B, A,B,C")
     sw.add_argument("--jobs", type=_positive, default=os.cpu_count() or 1, help="parallel processes (default: cores)")
     sw.add_argument("--threads", type=_positive, help="torch threads in each process (default: the cores over the "
                     "processes that run at once; set it where other work shares the machine)")

@@ -56,6 +56,8 @@ CASES = {
     "unknown plugin": (["train", str(TLA_C), "--plugin", "{tmp}/nope.py"], "plugin"),
     "a setting given to resume as train takes it": (["resume", "{tmp}/run", "layers.fast.learner.lr=1e-4"],
                                                      "(a stopped run's setting is changed with --set KEY=VALUE)"),
+    "a sweep given a range of seeds": (["sweep", str(TLA_C), "--seeds", "0-1"],
+                                       "a sweep takes a count N (seeds 0..N-1), got '0-1'"),
     "a Ray address without Ray": (["sweep", str(TLA_C), "--address", "10.0.0.1:6379"],
                                   "--address names a Ray cluster: give it with --backend ray"),
     "start weights that are not there": (["train", str(TLA_C), "layers.slow.weights={tmp}/nope.pt"],
