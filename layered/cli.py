@@ -304,7 +304,6 @@ def _label(source: Path) -> str:
 
 def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[str]) -> int:
     from layered.group import check_group, group_recipes, train_group
-    from layered.group_state import check_group_directory
     from layered.recipe import recipe_path
 
     if args.seed is not None:
@@ -315,7 +314,6 @@ def _train_group(args: argparse.Namespace, overrides: list[str], plugins: list[s
     out = args.out or Path("runs") / f"{source.stem}-group-{time.strftime('%Y%m%d-%H%M%S')}"
     args.out = out  # (stopped at once, it is resumed from here)
     outs = [out / f"seed{seed}" for seed in args.seeds]
-    check_group_directory(out, outs)
     print(f"training {args.recipe}, seeds {args.seeds} as one group -> {out}", file=sys.stderr)
     results = train_group(recipes, outs, _label(source), args.steps, plugins=plugins, force=args.force)
     return _group_finished(out, args.seeds, results)
@@ -469,15 +467,15 @@ def _eval_group(args: argparse.Namespace) -> int:
                                                                                               strict=True)]
     print(results_table([{**row, "phase": run.path.name} for run, (row, _) in zip(runs, written, strict=True)]))
     returns = [result.return_mean for result in results]
+    mean, std = statistics.fmean(returns), statistics.pstdev(returns)
     names = {path.relative_to(run.path) for run, (_, path) in zip(runs, written, strict=True)}
     same = len(names) == 1  # (else each seed's weights are named by its own best step)
     over = args.run_dir / (names.pop() if same else Path("eval") / written[0][1].name)  # the seeds' mean, kept
     over.parent.mkdir(parents=True, exist_ok=True)
     over.write_text(json.dumps({"seeds": [run.recipe.train.seed for run in runs], "returns": returns,
-                                "return_mean": statistics.fmean(returns), "return_std": statistics.pstdev(returns),
+                                "return_mean": mean, "return_std": std,
                                 "files": [str(path.relative_to(args.run_dir)) for _, path in written]}, indent=2))
-    print(f"over the {len(runs)} seeds: return {statistics.fmean(returns):.1f} ± {statistics.pstdev(returns):.1f} "
-          f"(population std): {over}")
+    print(f"over the {len(runs)} seeds: return {mean:.1f} ± {std:.1f} (population std): {over}")
     print(f"each seed's row: {written[0][1]}, " + ("and the same name in each seed's run directory" if same else
                                                     "and each seed's own eval folder (weights named by its best step)"))
     return 0

@@ -43,6 +43,7 @@ from layered.group_state import (
     GroupCheckpoint,
     Pending,
     PhaseLoop,
+    check_group_directory,
     check_new_group,
     clear_group,
     clear_group_and_seeds,
@@ -172,8 +173,8 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
     numbers = [recipe.train.seed for recipe in recipes]
     if list(outs) != seed_dirs(directory, numbers):
         raise ValueError(f"a group's run directories are its directory's seed<k> folders, not {list(outs)[:2]}...")
-    if not (resume or force):
-        check_new_group(directory, outs)  # before anything is built or written
+    if not resume:  # (before anything is built or written; with `force`, the seeds' runs go once all is checked)
+        (check_group_directory if force else check_new_group)(directory, outs)
     for warning in training_warnings(recipes[0], max_steps):
         print(f"layered: warning: {warning}", file=sys.stderr)
     keep_freed_memory()  # a group's update frees and takes back blocks of MBs every step (layered.heap)
@@ -183,7 +184,6 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
             start_from_weights(recipe, learners)
     if force:
         clear_group_and_seeds(directory, outs)
-        check_new_group(directory, outs)
     info = RunInfo(label, max_steps, tuple(plugins), tuple(numbers), threads=torch.get_num_threads())
     resolved_recipes = [resolved(recipe) for recipe in recipes]
     with ExitStack() as locks:

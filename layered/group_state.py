@@ -222,9 +222,8 @@ def check_group_directory(directory: Path, outs: Sequence[Path]) -> None:
 
 
 def clear_group_and_seeds(directory: Path, outs: Sequence[Path]) -> None:
-    """Start a group over (`--force`): its seeds' run directories and its checkpoint removed, where
-    `check_group_directory` takes the directory (refused, nothing removed, where it does not)."""
-    check_group_directory(directory, outs)
+    """Start a group over (`--force`), in a directory `check_group_directory` took: its seeds' run directories and its
+    checkpoint removed (a seed's directory holding files of another kind is refused, as `clear_run_dir` refuses it)."""
     for out in outs:
         if out.is_dir():
             clear_run_dir(out)

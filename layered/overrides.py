@@ -81,7 +81,7 @@ def grid(overrides: Sequence[str]) -> list[tuple[list[str], list[str]]]:
     one value per axis is a setup (the product, the first axis slowest). Per setup: all its overrides,
     and those of the axes (what names the setup; none when no key has several values), by key, each number as
     Python writes it (`setup_name`), so that the same setups written otherwise get the same names."""
-    return [(chosen, sorted(setup_name(option) for option in named)) for chosen, named in written_grid(overrides)]
+    return [(chosen, setup_names(named)) for chosen, named in written_grid(overrides)]
 
 
 def written_grid(overrides: Sequence[str]) -> list[tuple[list[str], list[str]]]:
@@ -96,6 +96,11 @@ def written_grid(overrides: Sequence[str]) -> list[tuple[list[str], list[str]]]:
         varies = len(options) > 1
         setups = [([*chosen, option], named + [option] * varies) for chosen, named in setups for option in options]
     return setups
+
+
+def setup_names(options: Sequence[str]) -> list[str]:
+    """A setup's `key=value`s as `grid` names them: by key, each as `setup_name` writes it."""
+    return sorted(setup_name(option) for option in options)
 
 
 def setup_name(option: str) -> str:

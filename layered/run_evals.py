@@ -246,6 +246,7 @@ def missing_figure_evals(run_dir: Path) -> list[str]:
     """What `layered report` would evaluate for this run: a threshold sweep where a threshold
     applies and none is kept, a gallery of the fastest layer where a stack has several layers."""
     from layered.orders import phases_of
+
     load_run_plugins(run_dir)  # (its recipe may name what they register)
     recipe = load_recipe(run_dir / "recipe.toml")
     missing = []

@@ -29,7 +29,7 @@ from tqdm import tqdm
 from layered.cores import share_cores, usable_cores
 from layered.interrupt import SIGNAL_NAMES
 from layered.ray_cluster import start_ray
-from layered.overrides import grid, written_grid
+from layered.overrides import setup_names, written_grid
 from layered.plugins import load_plugins
 from layered.recipe import RecipeError, device_settings, load_recipe, recipe_path, resolved
 from layered.rundir import read_run_info, steps_option
@@ -73,14 +73,15 @@ def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequen
     """
     paths = list(dict.fromkeys(recipe_path(source).resolve() for source in recipes))  # a recipe named twice runs once
     labels = recipe_labels(paths)
-    setups = [(chosen, named, written) for (chosen, named), (_, written) in zip(grid(overrides),
-                                                                                written_grid(overrides), strict=True)]
+    setups = written_grid(overrides)
+    on_device = {(path, k): device_settings(path, chosen, device) if device else []
+                 for path in paths for k, (chosen, _) in enumerate(setups)}
     jobs = []
     for seed in range(seeds):
         for path in paths:
-            for chosen, named, written in setups:
-                on_device = device_settings(path, chosen, device) if device else []
-                recipe = load_recipe(path, [*chosen, *on_device, f"train.seed={seed}"])
+            for k, (chosen, written) in enumerate(setups):
+                named = setup_names(written)
+                recipe = load_recipe(path, [*chosen, *on_device[path, k], f"train.seed={seed}"])
                 folder = out / labels[path] / ",".join(named).replace("/", "_") if named else out / labels[path]
                 as_written = out / labels[path] / ",".join(written).replace("/", "_")
                 if named and not folder.exists() and as_written.exists():  # (a setup of a sweep named so before)
