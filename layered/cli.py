@@ -727,7 +727,7 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     if not (sys.argv[1:] if argv is None else argv):  # a bare `layered`: what it can do
         parser.print_help(sys.stderr)
         raise SystemExit(EXIT_BAD_INPUT)
-    args, extra = parser.parse_known_args(argv)
+    args, extra = parser.parse_known_args(_run_dir_first(sys.argv[1:] if argv is None else argv))
     unknown = [a for a in extra if a.startswith("-") or "=" not in a or args.command not in ("train", "sweep")]
     if unknown:
         hint = (" (a stopped run's setting is changed with --set KEY=VALUE)" if args.command == "resume" and
@@ -737,6 +737,19 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
         raise SystemExit(EXIT_BAD_INPUT)
     args.overrides = extra
     return args
+
+
+def _run_dir_first(argv: list[str]) -> list[str]:
+    """`eval --gallery RUN` (or `--threshold-sweep RUN`): the option, whose value may be left out, would take the
+    run directory as the layer's name; a value that is a run's or a group's directory is taken as RUN instead."""
+    optional_values = ("--gallery", "--threshold-sweep")
+    if argv[:1] != ["eval"]:
+        return argv
+    for i, token in enumerate(argv[1:-1], start=1):
+        value = Path(argv[i + 1])
+        if token in optional_values and ((value / "run.json").exists() or any(value.glob("seed*/run.json"))):
+            return [argv[0], argv[i + 1], *argv[1:i + 1], *argv[i + 2:]]
+    return argv
 
 
 def load(args: argparse.Namespace) -> None:

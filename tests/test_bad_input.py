@@ -280,3 +280,23 @@ def test_a_bare_layered_prints_what_it_can_do(capsys):
         main([])
     err = capsys.readouterr().err
     assert stop.value.code == 2 and err.startswith("usage: layered") and "{train,resume,eval" in err
+
+
+@pytest.mark.parametrize("option", ["--gallery", "--threshold-sweep"])
+def test_an_optional_value_that_is_a_run_directory_is_taken_as_the_run(option, tmp_path):
+    """`eval --gallery RUN` would read RUN as the layer's name (and `--threshold-sweep RUN` as thresholds); a run's or
+    a group's directory there is the run, and a value that is no run's stays the option's."""
+    from layered.cli import parse
+
+    run, group = tmp_path / "run", tmp_path / "group"
+    for marker in (run / "run.json", group / "seed0" / "run.json"):
+        marker.parent.mkdir(parents=True)
+        marker.write_text("{}")
+    for directory in (run, group):
+        args = parse(["eval", option, str(directory), "--episodes", "2"])
+        assert args.run_dir == directory and args.episodes == 2
+        assert (args.gallery == "") if option == "--gallery" else (args.threshold_sweep is not None)
+    assert parse(["eval", str(run), "--gallery", "fast"]).gallery == "fast"
+    assert parse(["eval", str(run), "--threshold-sweep", "0,0.5"]).threshold_sweep == [0.0, 0.5]
+    with pytest.raises(SystemExit):  # a directory that holds no run is not taken for one
+        parse(["eval", "--gallery", str(tmp_path)])
