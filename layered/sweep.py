@@ -229,10 +229,11 @@ def _worker_threads() -> int:
 @dataclass
 class SweepStop:
     """The signals the sweep process received. The first sets the event that keeps workers from
-    starting a run and asks each running one (by SIGTERM) to stop at its next episode end with a
-    checkpoint; a second asks them again, which stops them at once."""
+    starting a run and asks each running one (by SIGTERM) to stop where it checkpoints (`where`: a run at its
+    next episode end, a group at its next step); a second asks them again, which stops them at once."""
 
     event: Any
+    where: str = "at their next episode end"
     received: list[str] = field(default_factory=list)
 
     def __call__(self, signum: int, frame: Any) -> None:
@@ -243,14 +244,14 @@ class SweepStop:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(child.pid or 0, signal.SIGTERM)
         if len(self.received) == 1:
-            print(f"\nlayered: {name}: no new run starts, and the running ones stop at their next episode end with "
-                  "a checkpoint (signal again to stop them at once)", file=sys.stderr, flush=True)
+            print(f"\nlayered: {name}: no new run starts, and the running ones stop {self.where} with a checkpoint "
+                  "(signal again to stop them at once)", file=sys.stderr, flush=True)
 
     def summary(self) -> str | None:
         """One line on what the stop did, or None when no signal came."""
         if not self.received:
             return None
-        how = "at their next episode end" if len(self.received) == 1 else "at once, from their last checkpoints"
+        how = self.where if len(self.received) == 1 else "at once, from their last checkpoints"
         return f"sweep stopped by {self.received[0]}: its running runs stopped {how}; the same command resumes them"
 
 
@@ -295,7 +296,7 @@ def run_local(jobs: Sequence[Job], workers: int, vectorize: bool = False,
     bar = tqdm(total=len(jobs), desc="sweep", unit="run", file=sys.stderr,
                disable=not sys.stderr.isatty())  # (in a log file, the outcome lines alone: no carriage returns)
     context = multiprocessing.get_context("spawn")  # fresh interpreters: no torch state forked
-    stop = SweepStop(context.Event())
+    stop = SweepStop(context.Event(), "at their next step" if vectorize else "at their next episode end")
     before = {s: signal.signal(s, stop) for s in SIGNAL_NAMES}
     processes = process_count(jobs, workers, vectorize)
     cores = usable_cores() // processes

@@ -182,15 +182,17 @@ def test_sweep_workers_end_when_the_sweep_process_is_killed(tmp_path):
     assert not _alive(worker)
 
 
-def _started_sweep(out, jobs=2):
-    """A sweep of 4 runs on 2 workers, once both workers are training (each has a checkpoint)."""
+def _started_sweep(out, jobs=2, *vectorize):
+    """A sweep of 4 runs (or 2 groups, with `--vectorize`) on 2 workers, once both workers are training (each has
+    a checkpoint)."""
     command = [sys.executable, "-m", "layered.cli", "sweep", PENDULUM / "td3.toml", PENDULUM / "tla-o.toml", *TINY,
-               "eval.fresh_episodes=0", "--seeds", 2, "--jobs", jobs, "--steps", 3000, "--out", out]
+               "eval.fresh_episodes=0", "--seeds", 2, "--jobs", jobs, "--steps", 3000, "--out", out, *vectorize]
     proc = subprocess.Popen(list(map(str, command)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
-    while len(list(out.rglob("run.pt"))) < jobs and time.monotonic() < deadline and proc.poll() is None:
+    checkpoint = "group.pt" if vectorize else "run.pt"
+    while len(list(out.rglob(checkpoint))) < jobs and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.2)
-    assert len(list(out.rglob("run.pt"))) >= jobs, "the workers never checkpointed"
+    assert len(list(out.rglob(checkpoint))) >= jobs, "the workers never checkpointed"
     return proc
 
 
@@ -211,6 +213,16 @@ def test_a_signal_to_the_sweep_alone_starts_no_new_run_and_stops_the_running_one
     again = layered_here("sweep", PENDULUM / "td3.toml", PENDULUM / "tla-o.toml", *TINY, "eval.fresh_episodes=0",
                          "--seeds", 2, "--jobs", 2, "--steps", 300, "--out", out)
     assert again.returncode == 2 and "--steps 3000, not --steps 300" in again.stderr  # resumed only as it was made
+
+
+def test_a_signal_to_a_vectorized_sweep_stops_its_groups_at_their_next_step(tmp_path):
+    proc = _started_sweep(tmp_path / "sw", 2, "--vectorize")
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=120)
+    lines = [line for line in stderr.splitlines() if line.startswith("layered:")]
+    assert proc.returncode == 130 and len(lines) == 2, stderr
+    assert "the running ones stop at their next step" in lines[0] and "stopped at their next step" in lines[1]
+    assert len(list((tmp_path / "sw").rglob("group.pt"))) == 2 and not list((tmp_path / "sw").rglob("results.json"))
 
 
 def test_comma_separated_values_make_a_grid_of_setups_each_reported_on_its_own(tmp_path):
