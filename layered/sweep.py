@@ -3,7 +3,7 @@
 Jobs run in parallel processes, each computing on its share of the cores (one torch thread where there
 are as many processes as cores; one on a Ray worker). A finished run (results.json) is
 skipped; a stopped one resumes from its last checkpoint, here or, with Ray, on whichever
-machine runs it. Ctrl-C stops every run at its next episode end with a checkpoint.
+machine runs it. Ctrl-C stops every run at its next episode end (a group at its next step) with a checkpoint.
 """
 
 from __future__ import annotations
