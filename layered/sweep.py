@@ -134,6 +134,16 @@ def _stopped() -> bool:
     return _STOP is not None and _STOP.is_set()
 
 
+def _finished(job: Job, grouped: bool) -> Outcome:
+    """A job whose run is finished: skipped, saying so where it was trained otherwise than this sweep trains it
+    (a seed of a group where the sweep trains single runs, or the other way round)."""
+    from layered.rundir import read_run_info
+
+    other = bool(read_run_info(job.out).group) != grouped
+    how = f"; trained as {'a single run' if grouped else 'a seed of a group'}" if other else ""
+    return Outcome(job, "skipped", f"already finished{how}")
+
+
 def _not_started(job: Job) -> Outcome:
     return Outcome(job, "not started", "the sweep was stopped; the same sweep again starts it")
 
@@ -147,7 +157,7 @@ def run_job(job: Job, threads: int = 1) -> Outcome:
     from layered.runs import train
 
     if (job.out / "results.json").exists():
-        return Outcome(job, "skipped", "already finished")
+        return _finished(job, grouped=False)
     if _stopped():
         return _not_started(job)
     torch.set_num_threads(threads)
@@ -183,7 +193,7 @@ def run_group(jobs: Sequence[Job]) -> list[Outcome]:
     from layered.rundir import clear_run_dir
 
     if all((job.out / "results.json").exists() for job in jobs):
-        return [Outcome(job, "skipped", "already finished") for job in jobs]
+        return [_finished(job, grouped=True) for job in jobs]
     if _stopped():
         return [_not_started(job) for job in jobs]
     torch.set_num_threads(_worker_threads())
@@ -396,7 +406,7 @@ def run_ray(jobs: Sequence[Job], address: str | None = None) -> list[Outcome]:
     """
     ray = start_ray(address)
     task = ray.remote(num_cpus=1)(_run_remote)
-    outcomes = [Outcome(j, "skipped", "already finished") for j in jobs if (j.out / "results.json").exists()]
+    outcomes = [_finished(j, grouped=False) for j in jobs if (j.out / "results.json").exists()]
     pending = {task.remote(j, _pack(j.out)): j for j in jobs if not (j.out / "results.json").exists()}
     bar = tqdm(total=len(jobs), initial=len(outcomes), desc="sweep (ray)", unit="run", file=sys.stderr)
     for outcome in outcomes:

@@ -269,6 +269,8 @@ def test_a_vectorised_sweep_trains_each_setups_seeds_as_one_group(tmp_path):
     assert runs == [f"pendulum/td3/layers.fast.action_penalty={v}/seed{k}" for v in (0, 1) for k in (0, 1)]
     assert '"group": [\n    0,\n    1\n  ]' in (out / runs[0] / "run.json").read_text()
     assert layered_here("sweep", *args).stdout.count("skipped") == 4
+    plain = layered_here("sweep", *[a for a in args if a != "--vectorize"]).stdout  # the same seeds, as single runs
+    assert plain.count("already finished; trained as a seed of a group") == 4, plain
     cut = sweep(PENDULUM / "td3.toml", *TINY, "--seeds", 3, "--jobs", 2, "--steps", 150, "--vectorize",
                 "--group-size", 2, "--out", tmp_path / "cut")
     assert cut.returncode == 0, cut.stderr
