@@ -45,7 +45,7 @@ def main() -> None:
             pending.add(values, {"critic": every, "actor": every if actor else none})
         seeds = [SimpleNamespace(state=LoopState(losses={"fast": []})) for _ in range(args.seeds)]
         start = time.perf_counter()
-        _read_back({"fast": pending}, seeds, 0)  # type: ignore[arg-type]
+        _read_back({"fast": pending}, {"fast": TD3Group.loss_names}, seeds, 0)  # type: ignore[arg-type]
         read.append(time.perf_counter() - start)
         start = time.perf_counter()
         for seed in seeds:

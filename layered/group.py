@@ -57,7 +57,8 @@ from layered.group_state import (
 from layered.heap import keep_freed_memory
 from layered.interrupt import StopRequest, Stopped
 from layered.learner_set import build_learners, keep_start_weights, precisions, start_from_weights
-from layered.learners.choice_group import ChoiceLearnerGroup, GateTD3Group, TempoRLGroup
+from layered.learners import LEARNERS
+from layered.learners.choice_group import ChoiceLearnerGroup
 from layered.learners.td3 import TD3Config
 from layered.learners.td3_group import TD3Group
 from layered.logs import CsvLog
@@ -89,13 +90,19 @@ from layered.trainer import (
     curve_auc,
     phase_budget,
     phase_row,
+    training_seed,
 )
 
 
 GroupLearner = TD3Group | ChoiceLearnerGroup
-STACKED: dict[str, type[TD3Group] | type[ChoiceLearnerGroup]] = {"td3": TD3Group, "td3-gate": GateTD3Group,
-                                                                 "temporl": TempoRLGroup}
-"""The learners a group stacks over its seeds, by kind (each takes the seeds' single learners of that kind)."""
+
+
+def group_class(kind: str) -> type[GroupLearner] | None:
+    """The learner that stacks the seeds' learners of `kind` (taking them as a list): the `Group` that the class
+    registered as `kind` names as its own, so that a subclass (whose update may differ) inherits none; None where
+    there is none."""
+    return vars(LEARNERS.get(kind)).get("Group")
+
 Transitions = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                     list[list[tuple[np.ndarray, float, int]]]]
 """A layer's completed transitions as its group learner's `observe` takes them (see `Group._transitions`)."""
@@ -122,7 +129,7 @@ def check_group(recipe: Recipe) -> None:
     out = []
     for i, layer in enumerate(recipe.layers):
         kind = recipe.learner_config(i).kind
-        if kind not in STACKED:
+        if group_class(kind) is None:
             out.append((f"layers[{i}].learner.kind", f"layer {layer.name!r} uses the {kind!r} learner, which does "
                         f"not train as a group yet ({SEPARATELY})"))
             continue
@@ -299,9 +306,13 @@ def seed_weights(recipe: Recipe, states: Mapping[str, dict[str, Any]], row: int,
 def stack_learners(recipes: Sequence[Recipe], singles: Sequence[dict[str, Any]]) -> dict[str, GroupLearner]:
     """Each layer's learners of every seed as one group, its generators seeded by the layer and the seeds."""
     seeds = [recipe.train.seed for recipe in recipes]
-    return {name: STACKED[recipes[0].learner_config(i).kind]([learners[name] for learners in singles],
-                           seed=int(np.random.SeedSequence([i, *seeds]).generate_state(1)[0]))
-            for i, name in enumerate(recipes[0].layer_names())}
+    stacked = {}
+    for i, name in enumerate(recipes[0].layer_names()):
+        group = group_class(recipes[0].learner_config(i).kind)
+        assert group is not None, "check_group refuses a learner that no group stacks"
+        stacked[name] = group([learners[name] for learners in singles],
+                              seed=int(np.random.SeedSequence([i, *seeds]).generate_state(1)[0]))
+    return stacked
 
 
 class Group:
@@ -316,6 +327,7 @@ class Group:
         self.recipe = seeds[0].recipe
         self.rows = len(seeds)
         self.names = self.recipe.layer_names()
+        self.loss_names = {name: type(learner).loss_names for name, learner in learners.items()}
 
     def restore(self, saved: GroupCheckpoint) -> None:
         """Take up the learners, replay, best weights and generator of `saved` (its loops, `train` takes up)."""
@@ -450,7 +462,7 @@ class Group:
             return
         self._evaluate(phase, evaluator, losses, 0, bar)
         p = self.seeds[0].state.phase
-        envs.reset(np.ones(self.rows, bool), [seed.recipe.train.seed + p for seed in self.seeds])
+        envs.reset(np.ones(self.rows, bool), [training_seed(seed.recipe, p) for seed in self.seeds])
         rules.reset()
 
     def _due(self, phase: Phase, loop: PhaseLoop, decisions: dict[str, np.ndarray],
@@ -475,7 +487,7 @@ class Group:
         where the writer is beside training, copied here and written while the group goes on
         (`layered.checkpoint_writer`)."""
         self.writer.wait()  # the checkpoint before is on disk, what it replaced removed: this one records from there
-        _read_back(losses, self.seeds, loop.step)
+        _read_back(losses, self.loss_names, self.seeds, loop.step)
         interval = checkpoint_interval(self.recipe)
         for k, seed in enumerate(self.seeds):
             state = seed.state
@@ -529,16 +541,15 @@ class Group:
         takes them, copied out of `mine` (which the layer's next decisions overwrite); None where there are none."""
         if not rows.any():
             return None
-        layer = stack.layers[i]
-        discount = layer.gamma ** np.where(layer.discount_per_step, mine.elapsed, 1)
-        return (mine.seen.copy(), mine.output.copy(), mine.reward.copy(), next_seen, terminated, discount, rows,
+        return (mine.seen.copy(), mine.output.copy(), mine.reward.copy(), next_seen, terminated,
+                stack.layers[i].discounts(mine.elapsed), rows,
                 list(mine.path))
 
     def _evaluate(self, phase: Phase, evaluator: Stacks, losses: dict[str, PendingLosses],
                   step: int, bar: Progress) -> None:
         """Evaluate every seed's present layers now and log its row, with its mean losses since the last."""
         results = self._evaluations(phase, evaluator, self.recipe.eval.episodes)
-        _read_back(losses, self.seeds, step)
+        _read_back(losses, self.loss_names, self.seeds, step)
         learned = any(any(seed.state.losses.values()) for seed in self.seeds)
         for k, (seed, result) in enumerate(zip(self.seeds, results, strict=True)):
             state = seed.state
@@ -546,7 +557,7 @@ class Group:
             if state.best_index() == len(state.curve) - 1:
                 state.best = {name: self.learners[name].seed_state_dict(k) for name in phase.learn}
             row = {"phase": state.phase, "learn": "+".join(phase.learn), "step": step, **result.row(),
-                   **mean_losses(state.losses, {n: TD3Group.loss_names for n in phase.learn})}
+                   **mean_losses(state.losses, self.loss_names)}
             state.losses = {name: [] for name in phase.learn}
             seed.metrics.write(row)
             if seed.events is not None:
@@ -610,7 +621,8 @@ def _end_periods(pending: dict[int, Pending], ended: np.ndarray, rules: Rules, o
             mine.end_periods(ends, rules.observation(i, obs), stack.layers[i].discount_units)
 
 
-def _read_back(losses: dict[str, PendingLosses], seeds: Sequence[Seed], step: int) -> None:
+def _read_back(losses: dict[str, PendingLosses], loss_names: Mapping[str, Sequence[str]], seeds: Sequence[Seed],
+               step: int) -> None:
     """Add the losses of each layer's updates since the last read-back to each seed's loop state (each
     update a seed took part in, as the single loop's `UpdateStats`), read off the device in one copy per
     layer; a non-finite one stops the group."""
@@ -621,7 +633,7 @@ def _read_back(losses: dict[str, PendingLosses], seeds: Sequence[Seed], step: in
         took = np.stack([masks["critic"] for _, masks in read])  # [updates, K]: the seeds each update stepped
         none, zeros = np.zeros_like(took[0]), np.zeros(took.shape[1], np.float32)  # (a loss an update lacks)
         columns = {}  # per loss: [updates, K] values, and whether the update computed them for the seed
-        for n in TD3Group.loss_names:
+        for n in loss_names[name]:
             computed = np.stack([masks.get(n, none) for _, masks in read]) & took
             values = np.stack([update.get(n, zeros) for update, _ in read])
             _check_finite(values[computed], "loss", name, seeds[0].state.phase, step)

@@ -49,6 +49,10 @@ class Layer:
         """The discount of the bootstrap value after a decision that spanned `elapsed` base steps."""
         return self.gamma ** self.discount_units(elapsed)
 
+    def discounts(self, elapsed: np.ndarray) -> np.ndarray:
+        """`discount` of each row's decision, which spanned `elapsed[k]` base steps."""
+        return self.gamma ** np.where(self.discount_per_step, elapsed, 1)
+
 
 @dataclass
 class Decision:

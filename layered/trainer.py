@@ -150,7 +150,7 @@ def run_phase(run: Training, state: LoopState, phase: Phase, budget: int) -> Pha
         if not state.curve:
             _evaluate(run, state, phase, evaluator, bar)
         while state.step < budget:
-            _start_episode(env, state, recipe.train.seed)
+            _start_episode(env, state, recipe)
             _train_episode(run, state, phase, budget, env, evaluator, bar)
             _end_episode(run, env, state)
         if state.curve[-1][0] != state.step:
@@ -202,10 +202,15 @@ def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, e
             state.next_eval += recipe.eval.every
 
 
-def _start_episode(env: LayeredEnv, state: LoopState, seed: int) -> None:
+def training_seed(recipe: Recipe, phase: int) -> int:
+    """The seed of a phase's first training episode (later ones go on from its generator): `train.seed + phase`."""
+    return recipe.train.seed + phase
+
+
+def _start_episode(env: LayeredEnv, state: LoopState, recipe: Recipe) -> None:
     """Reset the training env: the phase's first episode from its seed, later ones from its generator."""
     if state.episode == 0:
-        env.reset(seed=seed + state.phase)
+        env.reset(seed=training_seed(recipe, state.phase))
         return
     if state.env_rng is not None:  # the first episode after resuming
         env.base.unwrapped.np_random.bit_generator.state = state.env_rng

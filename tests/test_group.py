@@ -264,7 +264,7 @@ def test_each_seed_reads_back_the_losses_of_the_updates_it_took_part_in():
         for values, took in updates:
             pending.add({n: torch.tensor(v, dtype=torch.float32) for n, v in values.items()},
                         {n: np.array(t) for n, t in took.items()})
-        _read_back({"fast": pending}, seeds, 7)
+        _read_back({"fast": pending}, {"fast": ("critic", "actor")}, seeds, 7)
         return [seed.state.losses["fast"] for seed in seeds]
 
     nan = float("nan")
@@ -308,3 +308,19 @@ def test_each_seed_of_a_group_starts_from_its_own_weights_named_by_seed(tmp_path
     assert main([*fast, "--seeds", "1,2", "--out", str(tmp_path / "missing")]) == 2
     assert f"layers[0].weights: {slow}/seed2/checkpoints/slow.best.pt" in capsys.readouterr().err
     assert not (tmp_path / "missing").exists()
+
+
+def test_a_learner_stacks_in_a_group_only_where_its_registered_class_names_a_group_of_its_own(monkeypatch):
+    """A plugin subclassing a shipped learner may change its update, which the shipped learner's group would not
+    run: it trains per seed unless its class names a group of its own."""
+    from layered.group import group_class
+    from layered.learners import LEARNERS
+    from layered.learners.choice_group import GateTD3Group, TempoRLGroup
+    from layered.learners.td3_group import TD3Group
+
+    assert [group_class(kind) for kind in ("td3", "temporl", "td3-gate")] == [TD3Group, TempoRLGroup, GateTD3Group]
+    mine = type("MyTD3", (LEARNERS.get("td3"),), {})
+    monkeypatch.setitem(LEARNERS._entries, "my-td3", mine)
+    assert group_class("my-td3") is None
+    monkeypatch.setattr(mine, "Group", TD3Group, raising=False)
+    assert group_class("my-td3") is TD3Group

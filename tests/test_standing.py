@@ -16,7 +16,7 @@ from layered.interrupt import Stopped
 from layered.runs import train
 from layered.checkpoint import load_checkpoint
 from layered.cli import main
-from layered.group import STACKED, seed_weights
+from layered.group import group_class, seed_weights
 from layered.learner_set import build_learners
 from layered.rundir import RUN_CHECKPOINT, RunDirError, prepare_run_dir, RunInfo
 from layered.run_evals import open_run
@@ -164,7 +164,7 @@ def test_a_seeds_weights_are_taken_out_of_its_groups_learner_states(name, kinds)
                for k in range(3)]
     assert {recipes[0].learner_config(i).kind for i in range(len(recipes[0].layers))} == kinds  # every kind of group
     singles = [build_learners(recipe, device="cpu") for recipe in recipes]  # (each seed starts from weights of its own)
-    states = {layer: STACKED[recipes[0].learner_config(i).kind]([seed[layer] for seed in singles]).resume_state()
+    states = {layer: group_class(recipes[0].learner_config(i).kind)([seed[layer] for seed in singles]).resume_state()
               for i, layer in enumerate(recipes[0].layer_names())}
     taken = seed_weights(recipes[0], states, 1, 3)
     for layer, weights in taken.items():
