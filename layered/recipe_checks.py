@@ -10,7 +10,7 @@ from pydantic import ValidationError
 from layered.combiners import COMBINERS
 from layered.envs import env_info, env_spaces
 from layered.learners import LEARNERS
-from layered.orders import MAKE_OWN_PHASES, ORDERS
+from layered.orders import MAKE_OWN_PHASES, ORDERS, phases_of
 from layered.schema import Recipe, describe_error, key_path
 
 
@@ -140,7 +140,8 @@ def _shared_note(recipe: Recipe, index: int, key: str) -> str:
 
 
 def _check_training(recipe: Recipe) -> list[tuple[str, str]]:
-    """A known order, and explicit phases that name existing layers."""
+    """A known order; explicit phases that name existing layers, each present where it learns; and no layer
+    present that never learns and is given no weights."""
     problems: list[tuple[str, str]] = []
     names = recipe.layer_names()
     if recipe.train.order not in ORDERS:
@@ -154,7 +155,28 @@ def _check_training(recipe: Recipe) -> list[tuple[str, str]]:
         for field in ("learn", "active"):
             problems += [(f"train.phases[{p}].{field}", f"no layer named {name!r}; layers: {', '.join(names)}")
                          for name in getattr(phase, field) or [] if name not in names]
-    return problems
+        if phase.active is not None and (absent := [n for n in phase.learn if n not in phase.active]):
+            problems.append((f"train.phases[{p}].active", f"leaves out {', '.join(map(repr, absent))}, which "
+                             f"{'learns' if len(absent) == 1 else 'learn'} in this phase: a layer learns where it is "
+                             "present"))
+    return problems or _untrained(recipe)
+
+
+def _untrained(recipe: Recipe) -> list[tuple[str, str]]:
+    """Layers present in a phase that learn in none and start from no `weights`: their random initial weights
+    would act, and no checkpoint would hold them for `eval`, `export` or `report`."""
+    phases = phases_of(recipe)
+    learned = {name for phase in phases for name in phase.learn}
+    key = "train.phases" if recipe.train.order == "explicit" else "train.order"
+    first_present: dict[str, int] = {}
+    for p, phase in enumerate(phases):
+        for name in phase.active:
+            first_present.setdefault(name, p)
+    names = recipe.layer_names()
+    return [(key, f"layer {name!r} is present in phase {p} but learns in no phase and starts from no "
+             f"layers[{names.index(name)}].weights: give it weights, or a phase to learn in")
+            for name, p in first_present.items()
+            if name not in learned and recipe.layers[names.index(name)].weights is None]
 
 
 def _check_learner(table: dict[str, Any]) -> list[tuple[str, str]]:

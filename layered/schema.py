@@ -148,9 +148,11 @@ class LayerConfig(Section):
     `updates = period`, one per base step, as the authors' jointly trained slow layer and gate make."""
     learn_from_commits: Flag = False
     """For the layer right below a gate: in training, while the gate commits, the layer still
-    decides at its period, and the executed action is recorded as its decision, so that it learns
-    from every step, as the authors' jointly trained fast layer does (otherwise it learns only
-    from the steps it acts on). Evaluation never asks it while the gate commits."""
+    decides at its period, and the gate's committed action (in a two-layer stack, the executed action)
+    is recorded as its decision, so that it learns from every step, as the authors' jointly trained
+    fast layer does (otherwise it learns only from the steps it acts on). Evaluation never asks it
+    while the gate commits. Needs `delay = 0`, `max_repeat = 1` and no gate of the layer's own; while a
+    gate higher up commits, the layer is not asked."""
     weights: str | None = None
     """A checkpoint the layer starts from instead of new networks: another run's
     `checkpoints/<name>.best.pt` or `<name>.pt` (a path relative to the recipe file that sets it).
@@ -167,7 +169,8 @@ class PhaseConfig(Section):
     learn: list[str] = Field(min_length=1)
     """Layers that learn in this phase."""
     active: list[str] | None = None
-    """Layers present in this phase; default: `learn` plus every layer trained before."""
+    """Layers present in this phase (the `learn` layers among them); default: `learn` plus every layer trained
+    before. A present layer must learn in some phase or start from `weights`."""
     steps: Whole | None = Field(default=None, gt=0)
     """Base environment steps of this phase; default `train.steps_per_phase`."""
 

@@ -70,6 +70,10 @@ def test_td3_defaults_are_the_papers():
          "the worst return must be below the best, as [worst, best] (got [5.0, 1.0])"),
         ({"train": {"order": "fast-to-slow", "phases": [{"learn": ["slow"]}]}}, "train.phases",
          "the 'fast-to-slow' order makes its own phases and would ignore these"),
+        ({"train": {"order": "explicit", "phases": [{"learn": ["fast"], "active": ["slow"]}]}},
+         "train.phases[0].active", "leaves out 'fast', which learns in this phase: a layer learns where it is present"),
+        ({"train": {"order": "explicit", "phases": [{"learn": ["fast"], "active": ["slow", "fast"]}]}}, "train.phases",
+         "layer 'slow' is present in phase 0 but learns in no phase and starts from no layers[0].weights"),
     ],
 )
 def test_bad_values_are_one_line_naming_the_key(change, key, says):
