@@ -77,20 +77,24 @@ class Composition:
 
 
 def output_bounds(recipe: Recipe, i: int, env_space: Box, layout: OutputLayout) -> tuple[np.ndarray, np.ndarray]:
-    """Layer i's output bounds: the env's scaled about their centre (a residual layer's, below a combiner
-    that takes residuals, centred on zero), then any gate dimensions in [-1, 1], then, for a layer that
-    may repeat, the repeat count in [1, max_repeat]."""
+    """Layer i's output bounds: the env's scaled about their centre (a residual's centred on zero), then any gate
+    dimensions in [-1, 1], then, for a layer that may repeat, the repeat count in [1, max_repeat]."""
     low, high = env_space.low.astype(np.float64), env_space.high.astype(np.float64)
     half = (high - low) / 2 * recipe.layers[i].action_scale
-    above = recipe.combiner_kind(i - 1) if i > 0 else None
-    residual = above is not None and COMBINERS.get(above).residual_below
-    mid = np.zeros_like(low) if residual else (high + low) / 2
+    mid = np.zeros_like(low) if residual(recipe, i) else (high + low) / 2
     low, high = mid - half, mid + half
     if layout.gate_dims:
         low, high = np.append(low, -np.ones(layout.gate_dims)), np.append(high, np.ones(layout.gate_dims))
     if layout.repeats:
         low, high = np.append(low, 1.0), np.append(high, float(layout.max_repeat))
     return low.astype(np.float32), high.astype(np.float32)
+
+
+def residual(recipe: Recipe, i: int) -> bool:
+    """Whether layer i's output is a residual, added to the action of the layers above: below a combiner that takes
+    residuals, or in the place of a layer whose output is one (below a gate that is itself a residual)."""
+    above = recipe.combiner_kind(i - 1) if i > 0 else None
+    return above is not None and (COMBINERS.get(above).residual_below or residual(recipe, i - 1))
 
 
 def has_threshold(recipe: Recipe, active: Sequence[str]) -> bool:

@@ -123,6 +123,19 @@ def test_action_spaces_residual_range_is_scaled_and_gates_add_a_dimension():
     assert gate.layers[0].action_space == Box(np.array([-2, -1], np.float32), np.array([2, 1], np.float32))
 
 
+@pytest.mark.parametrize(("kinds", "ranges"), [
+    (["residual-clip", "gate", "residual-clip"], [(0, 4), (-2, 2), (-2, 2)]),  # below a residual gate: about zero
+    (["gate", "gate", "residual-clip"], [(0, 4), (0, 4), (0, 4)]),  # gates over gates replace the env's action
+    (["gate", "residual-clip", "residual-clip"], [(0, 4), (0, 4), (-2, 2)]),
+])
+def test_a_layer_in_place_of_a_residual_gate_has_its_range_centred_on_zero(kinds, ranges):
+    """On an action range off zero ([0, 4]): a layer whose output stands in for a residual (below a gate that is
+    itself a residual) adds to the layers above it as the gate's own action would, so its range is centred on
+    zero too; one whose output stands in for the environment's action is not."""
+    stack = Stack(stack_recipe([4, 2, 1], kinds), OBS, Box(0.0, 4.0, (1,), np.float32))
+    assert [(float(layer.action_space.low[0]), float(layer.action_space.high[0])) for layer in stack.layers] == ranges
+
+
 def test_observation_is_obs_plus_held_actions_of_the_named_slower_layers():
     stack = make([4, 2, 1], ["gate", "residual-clip", "residual-clip"])
     stack.hold(0, np.array([1.5, 1.0]))
