@@ -173,13 +173,14 @@ def _setting(recipe: dict[str, Any], info: dict[str, Any]) -> tuple[tuple[str, s
     """A resolved recipe as (dotted key, value) pairs, layers by name, `NOT_A_SETTING` left out and
     `train.steps_per_phase` too where explicit phases each name their steps (there it changes nothing, and a label
     that showed it would misstate the budget), with the `--steps` cap of its run.json (`info`) as `--steps`: what
-    tells the setups of runs filed under one label apart."""
+    tells the setups of runs filed under one label apart; and `trained` as a seed of a `group` or `alone` (a seed's
+    numbers depend on whether, and with which seeds, it trained as a group)."""
     train = recipe.get("train", {})
     phases = train.get("phases") or []
     if train.get("order") == "explicit" and phases and all(p.get("steps") for p in phases):
         recipe = {**recipe, "train": {k: v for k, v in train.items() if k != "steps_per_phase"}}
     cap = (("--steps", "none" if info["max_steps"] is None else str(info["max_steps"])),) if "max_steps" in info else ()
-    return _pairs(recipe) + cap
+    return _pairs(recipe) + cap + (("trained", "group" if info.get("group") else "alone"),)
 
 
 def _pairs(recipe: Any, prefix: str = "") -> tuple[tuple[str, str], ...]:

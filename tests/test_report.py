@@ -217,14 +217,15 @@ def test_grouping_orders_methods_as_the_paper():
 def test_runs_of_different_recipes_under_one_label_are_setups_of_their_own(capsys):
     from layered.summary import _setting
 
-    def at(seed, penalty, order, older=False, steps=None):
+    def at(seed, penalty, order, older=False, steps=None, group=()):
         recipe = {"env": {"id": "Pendulum-v1"}, "train": {"seed": seed, "order": order},
                   "layers": [{"name": "slow", "period": 4}, {"name": "fast", "action_penalty": penalty}]}
         if not older:
             recipe["train"]["select"] = "best"  # a key older runs lack does not split them
-        return replace(run("p/tla-c", seed, 0, 0, []), setting=_setting(recipe, {"max_steps": steps}))
+        info = {"max_steps": steps, **({"group": group} if group else {})}
+        return replace(run("p/tla-c", seed, 0, 0, []), setting=_setting(recipe, info))
 
-    flat = {"layers.fast.a": "[1, 2]"}
+    flat = {"layers.fast.a": "[1, 2]", "trained": "alone"}
     assert dict(_setting({"layers": [{"name": "fast", "a": [1, 2]}], "train": {"seed": 3, "checkpoint_every": 9},
                           "log": {"tensorboard": True}, "env": {"workers": 2}}, {})) == flat
     # explicit phases that each name their steps make `steps_per_phase` inert: it is no setting of the run
@@ -242,6 +243,11 @@ def test_runs_of_different_recipes_under_one_label_are_setups_of_their_own(capsy
     # runs capped at another --steps are another setup; a seed from two runs of one setup is named
     assert [(s.label, len(s.runs)) for s in group([at(0, 1.0, "joint", steps=1000), at(0, 1.0, "joint")])] == [
         ("p/tla-c --steps=1000", 1), ("p/tla-c --steps=none", 1)]
+    assert "come from more than one run" not in capsys.readouterr().err
+    # seeds trained as a group are another setup than the same seeds trained alone; the groups of one sweep are one
+    assert [(s.label, len(s.runs)) for s in group([at(0, 1.0, "joint", group=[0, 1]), at(1, 1.0, "joint", group=[0, 1]),
+                                                   at(2, 1.0, "joint", group=[2]), at(0, 1.0, "joint")])] == [
+        ("p/tla-c trained=alone", 1), ("p/tla-c trained=group", 3)]
     assert "come from more than one run" not in capsys.readouterr().err
     assert [len(s.runs) for s in group([at(0, 1.0, "joint"), at(0, 1.0, "joint"), at(1, 1.0, "joint")])] == [3]
     assert "tla-c: seed 0 comes from more than one run of the same setup (seed 0: /r/p/tla-c-0, /r/p/tla-c-0)" in \
