@@ -143,7 +143,7 @@ class Driver:
         if not self.clocked:
             return float("inf")
         layer = self.rules.layers[i]
-        return self.t0 + (self.t + (layer.delay * layer.period if layer.delay else 1)) * self.h
+        return self.t0 + (self.t + (layer.lag if layer.delay else 1)) * self.h
 
     def _stall_limit(self, i: int) -> float:
         """How long past its deadline (clocked) or since it was sent (lockstep) a request may go unanswered."""
@@ -188,8 +188,8 @@ class Driver:
         layers = self.rules.layers
         if not layers[i].sees_in_flight:
             return False
-        lands = self.t + layers[i].delay * layers[i].period
-        return any(d.output is None and d.step + layers[k].delay * layers[k].period <= lands
+        lands = self.t + layers[i].lag
+        return any(d.output is None and d.step + layers[k].lag <= lands
                    for k in layers[i].sees for d in self.pending.get(k, ()))
 
     def _age(self, decision: Decision) -> None:

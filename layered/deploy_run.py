@@ -103,7 +103,7 @@ def _deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: P
             finally:
                 for process in processes.values():
                     process.close()
-            row = _row(run, setting, driver, played, reference, timestep, tolerance)
+            row = _row(setting, driver, played, reference, timestep, tolerance)
             row["pids"] = [process.pid for process in processes.values()]
             (out / f"{setting.label}.json").write_text(json.dumps(row, indent=2) + "\n")
             rows.append(row)
@@ -118,14 +118,16 @@ def _deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: P
     return rows
 
 
-def _row(run: TrainedRun, setting: Settings, driver: Driver, played: list[Any],
-         reference: list[tuple[float, np.ndarray]], timestep: float, tolerance: float) -> dict[str, Any]:
+def _row(setting: Settings, driver: Driver, played: list[Any], reference: list[tuple[float, np.ndarray]],
+         timestep: float, tolerance: float) -> dict[str, Any]:
+    """One setting's measures (deploy's `<setting>.json`): its episodes' returns and speed, how far its actions are
+    from `layered eval`'s, and each layer's latencies."""
     difference = largest_difference([e.actions for e in played], [actions for _, actions in reference])
     layers = {}
     for i in driver.rules.active:
         layer = driver.rules.layers[i]
         mine = [d for d in driver.decisions if d.layer == i]
-        layers[layer.name] = {"period_s": layer.period * timestep, **layer_measures(mine, layer.delay * layer.period)}
+        layers[layer.name] = {"period_s": layer.period * timestep, **layer_measures(mine, layer.lag)}
     return {
         "setting": setting.label, "speed": setting.speed, "lockstep": setting.lockstep,
         "links": {name: str(link) for name, link in setting.links.items()},

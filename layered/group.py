@@ -548,7 +548,7 @@ class Group:
     def _evaluate(self, phase: Phase, evaluator: Stacks, losses: dict[str, PendingLosses],
                   step: int, bar: Progress) -> None:
         """Evaluate every seed's present layers now and log its row, with its mean losses since the last."""
-        results = self._evaluations(phase, evaluator, self.recipe.eval.episodes)
+        results = self._evaluations(evaluator, self.recipe.eval.episodes)
         _read_back(losses, self.loss_names, self.seeds, step)
         learned = any(any(seed.state.losses.values()) for seed in self.seeds)
         for k, (seed, result) in enumerate(zip(self.seeds, results, strict=True)):
@@ -565,9 +565,9 @@ class Group:
         returns = np.array([r.return_mean for r in results])
         bar.evaluated(step, float(returns.mean()), float(returns.std()), learned)
 
-    def _evaluations(self, phase: Phase, evaluator: Stacks, episodes: int, fresh: bool = False) -> list[Evaluation]:
-        """Each seed's evaluation of its present layers over `episodes` episodes seeded from its `evaluation_seed`
-        (`fresh`: its fresh episodes'), as many side by side as the evaluator has lanes."""
+    def _evaluations(self, evaluator: Stacks, episodes: int, fresh: bool = False) -> list[Evaluation]:
+        """Each seed's evaluation of the evaluator's present layers over `episodes` episodes seeded from its
+        `evaluation_seed` (`fresh`: its fresh episodes'), as many side by side as the evaluator has lanes."""
         return evaluate_seeds(evaluator, self.learners, episodes, [evaluation_seed(seed.recipe, fresh)
                                                                   for seed in self.seeds])
 
@@ -585,11 +585,11 @@ class Group:
         final = {name: [self.learners[name].seed_state_dict(k) for k in range(self.rows)] for name in phase.learn}
         evaluator = self._evaluator(phase, self.recipe.eval.fresh_episodes) if self.recipe.eval.fresh_episodes else None
         try:
-            self._fresh(evaluator, phase, rows, "final")
+            self._fresh(evaluator, rows, "final")
             for k, seed in enumerate(self.seeds):
                 for name in phase.learn:
                     self.learners[name].load_seed_state_dict(k, seed.state.best[name])
-            self._fresh(evaluator, phase, rows, "best")
+            self._fresh(evaluator, rows, "best")
         finally:
             if evaluator is not None:
                 close_evaluator(evaluator)
@@ -599,13 +599,12 @@ class Group:
                     self.learners[name].load_seed_state_dict(k, state)
         return rows
 
-    def _fresh(self, evaluator: Stacks | None, phase: Phase, rows: list[dict[str, Any]],
-               label: str) -> None:
+    def _fresh(self, evaluator: Stacks | None, rows: list[dict[str, Any]], label: str) -> None:
         """Add each seed's `fresh_<label>_<measure>` evaluation on `eval.fresh_episodes` episodes to its row (none
         without an evaluator: `eval.fresh_episodes` is 0)."""
         if evaluator is None:
             return
-        results = self._evaluations(phase, evaluator, self.recipe.eval.fresh_episodes, fresh=True)
+        results = self._evaluations(evaluator, self.recipe.eval.fresh_episodes, fresh=True)
         for row, result in zip(rows, results, strict=True):
             row |= {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
 

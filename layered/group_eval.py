@@ -13,7 +13,7 @@ import torch
 from tqdm import tqdm
 
 from layered.env_group import Envs
-from layered.env_workers import WorkersSetting, open_envs
+from layered.env_workers import open_envs
 from layered.evaluate import episode_seeds
 from layered.learners import Learner
 from layered.metrics import EpisodeMeasures, EpisodeMeter, Evaluation, summarise
@@ -36,14 +36,11 @@ def eval_lanes(episodes: int, seeds: int) -> int:
     return max(1, min(episodes, EVAL_LANES, EVAL_ROWS // seeds))
 
 
-def open_stacks(recipe: Recipe, active: Sequence[str], rows: int, evaluation: bool,
-                workers: WorkersSetting | None = None, gpu: bool = False) -> Stacks:
+def open_stacks(recipe: Recipe, active: Sequence[str], rows: int, evaluation: bool, gpu: bool = False) -> Stacks:
     """The stack of the `active` layers, its rules over `rows` rows and their environments (for training, or for
-    an `evaluation`), stepped in `workers` processes (default: the recipe's `env.workers`; `gpu`: the learners
-    are on one, for `env.wait`)."""
+    an `evaluation`), stepped as the recipe's `env.workers` says (`gpu`: the learners are on one, for `env.wait`)."""
     env = recipe.env
-    envs = open_envs(env.id, rows, env.workers if workers is None else workers, env.threads, evaluation, env.wait,
-                     gpu)
+    envs = open_envs(env.id, rows, env.workers, env.threads, evaluation, env.wait, gpu)
     return stacks_over(recipe, active, envs, evaluation)
 
 

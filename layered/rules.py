@@ -60,6 +60,11 @@ class Layer:
         """Length of the layer's output vector."""
         return len(self.low)
 
+    @property
+    def lag(self) -> int:
+        """Base steps from a decision to its output's landing: `delay` of the layer's periods."""
+        return self.delay * self.period
+
     def repeats(self, outputs: np.ndarray) -> np.ndarray | int:
         """For how many of its periods the layer holds each of `outputs` ([K, size]) before deciding again."""
         if self.max_repeat <= 1:
@@ -242,7 +247,7 @@ class Rules:
         by the outputs of the slower layers it names that will be in effect when it lands."""
         layer = self.layers[i]
         upcoming = self.upcoming(i)
-        lands = upcoming + layer.delay * layer.period
+        lands = upcoming + layer.lag
         parts = [np.asarray(obs, np.float32).reshape(self.rows, -1)]
         parts += [self.in_effect(j, lands)[:, : self.action_dim] for j in layer.sees]
         for k in range(layer.delay):

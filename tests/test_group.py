@@ -100,7 +100,7 @@ def test_a_group_evaluates_each_seed_as_its_own_stack_would(tmp_path, lanes, pha
     group, recipes, singles = tiny_group("pendulum/tla-c.toml", [0, 1], tmp_path)
     phase = phases_of(recipes[0])[phase]
     evaluator = open_stacks(recipes[0], phase.active, 2 * lanes, evaluation=True)  # seed k's lane l: row k * lanes + l
-    together = group._evaluations(phase, evaluator, 3)  # (seeded train.seed + eval.seed_offset, 100)
+    together = group._evaluations(evaluator, 3)  # (seeded train.seed + eval.seed_offset, 100)
     for k, recipe in enumerate(recipes):
         env = make_aec_env(recipe, active=list(phase.active), evaluation=True, keep_trace=True)
         alone = evaluate(env, singles[k], 3, recipe.train.seed + 100)
