@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import difflib
+from collections.abc import Mapping
 
 import gymnasium as gym
 
@@ -21,6 +22,16 @@ RETURN_RANGES: dict[str, tuple[float, float]] = {
 }
 
 
+def registered_info(name: str, source: str, return_ranges: Mapping[str, tuple[float, float]]) -> EnvInfo:
+    """What is known of `name` in Gymnasium's registry; a KeyError naming the nearest ids where it is not there
+    (`source`: whose environments the family offers)."""
+    if name not in gym.registry:
+        close = difflib.get_close_matches(name, list(gym.registry), n=3)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise KeyError(f"no {source} environment {name!r}{hint}")
+    return EnvInfo(return_range=return_ranges.get(name), episode_steps=gym.spec(name).max_episode_steps)
+
+
 @FAMILIES.register("gym")
 class GymnasiumFamily(EnvFamily):
     """Any id in Gymnasium's registry (recipes check that its spaces suit layers)."""
@@ -32,11 +43,7 @@ class GymnasiumFamily(EnvFamily):
         return gym.make(name, render_mode=render_mode)
 
     def info(self, name: str) -> EnvInfo:
-        if name not in gym.registry:
-            close = difflib.get_close_matches(name, list(gym.registry), n=3)
-            hint = f"; did you mean {', '.join(close)}?" if close else ""
-            raise KeyError(f"no Gymnasium environment {name!r}{hint}")
-        return EnvInfo(return_range=RETURN_RANGES.get(name), episode_steps=gym.spec(name).max_episode_steps)
+        return registered_info(name, "Gymnasium", RETURN_RANGES)
 
     def steps_in_parallel(self, env: gym.Env) -> bool:
         """Gymnasium's MuJoCo tasks (measured on Hopper and HalfCheetah; classic control steps in Python)."""

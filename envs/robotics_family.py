@@ -7,7 +7,6 @@ The flat vector concatenates the dict's entries in Gymnasium's (sorted) key orde
 from __future__ import annotations
 
 import contextlib
-import difflib
 import io
 import warnings
 
@@ -15,6 +14,7 @@ import gymnasium as gym
 from gymnasium.spaces import Dict
 from gymnasium.wrappers import FlattenObservation
 
+from layered.envs.gymnasium_family import registered_info
 from layered.envs.registry import FAMILIES, EnvFamily, EnvInfo
 
 # Worst and best return for the AUC: dense maze rewards are exp(-distance) per step and sparse
@@ -53,11 +53,7 @@ class RoboticsFamily(EnvFamily):
 
     def info(self, name: str) -> EnvInfo:
         _register()
-        if name not in gym.registry:
-            close = difflib.get_close_matches(name, list(gym.registry), n=3)
-            hint = f"; did you mean {', '.join(close)}?" if close else ""
-            raise KeyError(f"no gymnasium-robotics environment {name!r}{hint}")
-        return EnvInfo(return_range=RETURN_RANGES.get(name), episode_steps=gym.spec(name).max_episode_steps)
+        return registered_info(name, "gymnasium-robotics", RETURN_RANGES)
 
     def timestep(self, env: gym.Env) -> float | None:
         inner = env.unwrapped
