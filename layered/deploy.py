@@ -77,6 +77,7 @@ class Decision:
 
     @property
     def latency_s(self) -> float | None:
+        """Seconds from sending the request to its answer; None while unanswered."""
         return None if self.answered is None else self.answered - self.sent
 
 

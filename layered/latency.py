@@ -43,6 +43,7 @@ class Latency:
 
     @classmethod
     def of(cls, seconds: list[float]) -> Latency:
+        """The median and 99th percentile of `seconds`, in microseconds, and their count."""
         us = np.asarray(seconds) * 1e6
         return cls(float(np.median(us)), float(np.percentile(us, 99)), len(us))
 

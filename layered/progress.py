@@ -24,6 +24,7 @@ class Progress:
         self._learned = False  # whether the layers updated in the interval that ended at the last line
 
     def advance(self, steps: int) -> None:
+        """Move the bar on by `steps` environment steps."""
         self.bar.update(steps)
 
     def evaluated(self, step: int, mean: float, std: float, learned: bool) -> None:

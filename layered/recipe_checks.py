@@ -11,7 +11,7 @@ from layered.combiners import COMBINERS
 from layered.envs import env_info, env_spaces
 from layered.learners import LEARNERS
 from layered.orders import MAKE_OWN_PHASES, ORDERS, phases_of
-from layered.schema import Recipe, describe_error, key_path
+from layered.schema import DEFAULT_LEARNER, Recipe, describe_error, key_path
 
 
 def check_recipe(recipe: Recipe) -> list[tuple[str, str]]:
@@ -181,7 +181,7 @@ def _untrained(recipe: Recipe) -> list[tuple[str, str]]:
 
 def _check_learner(table: dict[str, Any]) -> list[tuple[str, str]]:
     """Problems of one layer's merged learner table, keyed relative to it."""
-    kind = table.get("kind", "td3")
+    kind = table.get("kind", DEFAULT_LEARNER)
     if kind not in LEARNERS:
         return [(".kind", LEARNERS.unknown(kind))]
     try:

@@ -232,19 +232,24 @@ class LogConfig(Section):
     row of metrics.csv as scalars. Needs the extra `layered-control[tensorboard]`."""
 
 
+DEFAULT_LEARNER = "td3"
+"""The learner of a layer whose recipe names none."""
+
+
 class Recipe(Section):
     """A whole experiment: environment, layer stack, combiners, learners, training and evaluation."""
 
     env: EnvConfig
     layers: list[LayerConfig] = Field(min_length=1)
     combine: CombineConfig = CombineConfig()
-    learner: dict[str, Any] = {"kind": "td3"}
+    learner: dict[str, Any] = {"kind": DEFAULT_LEARNER}
     """Learner settings shared by every layer (`kind` plus that learner's keys)."""
     train: TrainConfig = TrainConfig()
     eval: EvalConfig = EvalConfig()
     log: LogConfig = LogConfig()
 
     def layer_names(self) -> list[str]:
+        """The layers' names, slowest first."""
         return [layer.name for layer in self.layers]
 
     def warmup(self, name: str) -> int:
@@ -254,7 +259,7 @@ class Recipe(Section):
 
     def learner_config(self, index: int) -> LearnerConfig:
         """The validated learner settings of layer `index`: its own table over the shared one."""
-        table = {"kind": "td3", **self.learner, **self.layers[index].learner}
+        table = {"kind": DEFAULT_LEARNER, **self.learner, **self.layers[index].learner}
         return LEARNERS.get(table["kind"]).Config.model_validate(table)
 
     def return_range(self) -> tuple[float, float] | None:

@@ -35,6 +35,7 @@ class Layer:
 
     @property
     def name(self) -> str:
+        """The layer's name in the recipe."""
         return self.rules.name
 
     @property

@@ -50,6 +50,7 @@ class Run:
 
     @property
     def finished(self) -> bool:
+        """Whether the run trained to its end (it has no standing: its results are written)."""
         return not self.stands
 
     @property
@@ -336,6 +337,7 @@ class Setup:
 
     @property
     def realtime(self) -> bool:
+        """Whether the setup's runs are of the real-time setting (a layer acts with a delay)."""
         return self.runs[0].realtime
 
     def stat(self, key: str) -> tuple[float, float]:

@@ -69,6 +69,7 @@ class ChoiceQ:
         return q1 if self.head == "q1" else torch.min(q1, q2)
 
     def macs(self) -> int:
+        """Multiply-accumulates of one forward pass of the choice network."""
         return linear_macs(self.net)
 
     def state_dict(self) -> dict[str, Any]:

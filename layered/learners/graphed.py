@@ -36,6 +36,7 @@ class GraphedStep(Generic[Out]):
 
     @property
     def captured(self) -> bool:
+        """Whether the step has been captured as a CUDA graph (it replays the graph from then on)."""
         return self.graph is not None
 
     def __call__(self) -> Out:
