@@ -113,10 +113,25 @@ def _seeds(text: str) -> list[int]:
     return seeds
 
 
+Subcommands = argparse._SubParsersAction  # (argparse's type of `add_subparsers`: where each command's parser is added)
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="layered", description="Temporally layered control stacks.")
     parser.add_argument("--version", action="version", version=f"layered {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    _train_parser(sub)
+    _resume_parser(sub)
+    _eval_parser(sub)
+    _export_parser(sub)
+    _sweep_parser(sub)
+    _deploy_parser(sub)
+    _report_parser(sub)
+    return parser
+
+
+def _train_parser(sub: Subcommands) -> None:
+    """The options of `layered train`: a training run."""
     tr = sub.add_parser(
         "train", help="train a recipe and write a run directory",
         usage="layered train RECIPE [key=value ...] [--out DIR] [--seed S] [--steps N] [--threads T] [--force] "
@@ -136,6 +151,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="also write TensorBoard event files (as log.tensorboard=true; extra "
                     "layered-control[tensorboard])")
     _plugin_option(tr)
+
+
+def _resume_parser(sub: Subcommands) -> None:
+    """The options of `layered resume`: resuming a stopped run or group."""
     rs = sub.add_parser("resume", help="continue a stopped run from its last checkpoint",
                         epilog="the run continues with the recipe and --steps it was started with, but for the "
                         "settings --set changes")
@@ -147,6 +166,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="continue with a changed setting (a layer's learner settings, action_penalty, updates), "
                     "e.g. --set layers.fast.learner.lr=1e-4 after a divergence; in every seed of a group; recorded "
                     "in run.json")
+
+
+def _eval_parser(sub: Subcommands) -> None:
+    """The options of `layered eval`: evaluating a run or a group."""
     ev = sub.add_parser("eval", help="evaluate a trained run directory, or every seed of a group")
     ev.add_argument("run_dir", type=Path, help="run directory of a trained run (of one still training or stopped: "
                     "the phase under way at its best weights so far), or a group's directory: every seed evaluated "
@@ -171,6 +194,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="write an MP4 per episode (default 1 episode) with a strip of who decided and who acted")
     ev.add_argument("--gallery", nargs="?", const="", metavar="LAYER",
                     help="render the states where LAYER (default: the fastest) acts, as gallery-LAYER.png")
+
+
+def _export_parser(sub: Subcommands) -> None:
+    """The options of `layered export`: exporting a trained stack."""
     ex = sub.add_parser(
         "export", help="write a trained stack as files that run without the training code",
         epilog="then, with torch (or onnxruntime) alone: from layered_runtime import load_stack; "
@@ -187,6 +214,10 @@ def _parser() -> argparse.ArgumentParser:
     ex.add_argument("--episodes", type=_positive, default=3,
                     help="episodes on which the export is checked against the library and timed (default 3)")
     _plugin_option(ex, "besides those the run was trained with")
+
+
+def _sweep_parser(sub: Subcommands) -> None:
+    """The options of `layered sweep`: a sweep over recipes, settings and seeds."""
     sw = sub.add_parser(
         "sweep", help="train every recipe with several seeds, in parallel processes",
         usage="layered sweep RECIPE... [key=value ...] [--seeds N] [--jobs J] [--threads T] [--out DIR] [--steps N] "
@@ -217,6 +248,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="local processes (default) or Ray tasks (needs the extra layered-control[ray])")
     sw.add_argument("--address", help="Ray cluster address (default: start a local Ray)")
     _plugin_option(sw)
+
+
+def _deploy_parser(sub: Subcommands) -> None:
+    """The options of `layered deploy`: deploying a trained stack as processes."""
     dp = sub.add_parser(
         "deploy", help="run a trained stack with each layer in a process of its own, against the clock",
         epilog="writes DIR/<setting>.json, DIR/deploy.md and, over several settings, DIR/deploy.png; "
@@ -246,6 +281,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="each layer a local process (default) or a Ray actor (extra layered-control[ray])")
     dp.add_argument("--address", help="with --transport ray: the Ray cluster's address (default: start a local Ray)")
     _plugin_option(dp, "besides those the run was trained with")
+
+
+def _report_parser(sub: Subcommands) -> None:
+    """The options of `layered report`: the report over finished runs."""
     rep = sub.add_parser("report", help="aggregate finished runs over seeds into the paper's tables and figures")
     rep.add_argument("runs", type=Path, nargs="+", help="run directories, or folders that hold them")
     rep.add_argument("--unfinished", action="store_true",
@@ -257,7 +296,8 @@ def _parser() -> argparse.ArgumentParser:
                      "and gallery are evaluated once and kept in its eval/ folder")
     rep.add_argument("--threads", type=_positive, help="the cores those evaluations compute on: torch's threads and "
                      "those their environments step in (default: every core)")
-    return parser
+
+
 
 
 def _fail(message: str) -> int:
