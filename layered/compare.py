@@ -18,9 +18,12 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from layered.summary import Run, Setup
 
 LEVEL = 0.95  # of the confidence intervals
 
@@ -128,13 +131,13 @@ def number(value: Any) -> float:
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else float("nan")
 
 
-def _values(runs: Sequence[Any], key: str, phase: int | None = None) -> list[float] | None:
+def _values(runs: Sequence[Run], key: str, phase: int | None = None) -> list[float] | None:
     """Each run's value of `key` (in its last phase's results, or phase `phase`'s); None unless every run has one."""
     found = [number((run.final if phase is None else run.phases[phase]).get(key)) for run in runs]
     return None if any(v != v for v in found) else found
 
 
-def setup_pairs(setups: Sequence[Any]) -> Iterator[tuple[Any, Any]]:
+def setup_pairs(setups: Sequence[Setup]) -> Iterator[tuple[Setup, Setup]]:
     """Each finished setup with each listed before it in the same environment and setting (the real-time one or
     not; the paper's baselines come first): what is compared with what, later first."""
     done = [s for s in setups if all(r.finished for r in s.runs)]
@@ -142,7 +145,7 @@ def setup_pairs(setups: Sequence[Any]) -> Iterator[tuple[Any, Any]]:
         yield from ((later, s) for s in done[:i] if (s.env, s.realtime) == (later.env, later.realtime))
 
 
-def between_setups(setups: Sequence[Any]) -> list[Row]:
+def between_setups(setups: Sequence[Setup]) -> list[Row]:
     """Each of `setup_pairs`, on every measure of `MEASURES` that all their runs have: seed by seed where the two
     setups are `paired_seeds`, else as independent samples."""
     rows = []
@@ -156,13 +159,13 @@ def between_setups(setups: Sequence[Any]) -> list[Row]:
     return rows
 
 
-def phased(runs: Sequence[Any]) -> bool:
+def phased(runs: Sequence[Run]) -> bool:
     """Whether any of the runs trained in phases, or continued a stack that another run's phases trained: where the
     whole run's AUC (`run_auc`) differs from the AUC, and so is reported beside it."""
     return any(len(run.phases) > 1 or run.continues is not None for run in runs)
 
 
-def paired_seeds(first: Any, second: Any) -> bool:
+def paired_seeds(first: Setup, second: Setup) -> bool:
     """Whether two setups ran the same seeds and each seed's two runs hold trained layers in common (one started
     from the other's weights, or both from one run's, as a fast phase tried over the slow layers of another
     setup's runs): then a seed's two returns share its layers' luck, and only their difference measures the setups."""
@@ -171,7 +174,7 @@ def paired_seeds(first: Any, second: Any) -> bool:
     return all(x.shares_layers_with(y) for x, y in zip(first.runs, second.runs, strict=True))
 
 
-def between_phases(setups: Sequence[Any]) -> list[Row]:
+def between_phases(setups: Sequence[Setup]) -> list[Row]:
     """In each finished setup trained in phases, each phase against the one before it, seed by seed, on the
     returns of its best and its final weights on fresh episodes (for TLA: the stack against its slow layer alone);
     and a setup whose runs continued the stacks of another's (`continued`), its first phase against the phase
@@ -180,22 +183,23 @@ def between_phases(setups: Sequence[Any]) -> list[Row]:
     done = [s for s in setups if all(r.finished for r in s.runs)]
     for s in done:
         phases = s.runs[0].phases
-        pairs = [(p, s.runs, p - 1, f"phase {p - 1} ({_learns(phases[p - 1])})")
-                 for p in range(1, min(len(r.phases) for r in s.runs))]
+        pairs: list[tuple[int, Sequence[Run], int, str]] = [
+            (p, s.runs, p - 1, f"phase {p - 1} ({_learns(phases[p - 1])})")
+            for p in range(1, min(len(r.phases) for r in s.runs))]
         if (earlier := continued(s, done)) is not None:
             source, runs, q = earlier
             if len(phases) > 1 or q < min(len(r.phases) for r in source.runs) - 1:
                 pairs.insert(0, (0, runs, q, f"{source.method} phase {q} ({_learns(runs[0].phases[q])})"))
-        for p, runs, q, second in pairs:
+        for p, others, q, second in pairs:
             for key, name, fmt in MEASURES[:2]:
-                a, b = _values(s.runs, key, p), _values(runs, key, q)
+                a, b = _values(s.runs, key, p), _values(others, key, q)
                 if a is not None and b is not None and (result := paired(a, b)) is not None:
                     rows.append(Row(s.env, f"{s.method} phase {p} ({_learns(phases[p])})", second, name, fmt, True,
                                     result))
     return rows
 
 
-def continued(setup: Any, setups: Sequence[Any]) -> tuple[Any, list[Any], int] | None:
+def continued(setup: Setup, setups: Sequence[Setup]) -> tuple[Setup, list[Run], int] | None:
     """The setup of `setups` whose runs `setup`'s runs continued (each started from the layers of its own run of it,
     all at the end of one phase: `Run.continues`), in the same environment and setting; those runs, in the order of
     `setup`'s; and that phase. None where there is no such setup."""
@@ -229,11 +233,11 @@ RESAMPLES = 2000
 """Bootstrap resamples of an `Across` interval."""
 
 
-def across_envs(setups: Sequence[Any], resamples: int = RESAMPLES) -> list[Across]:
+def across_envs(setups: Sequence[Setup], resamples: int = RESAMPLES) -> list[Across]:
     """Each method (a recipe's name) against each listed before it, over every environment of one setting where
     both have finished setups, where there are two or more such: `mean_improvement` over those environments, on
     every measure of `MEASURES` that all their runs have."""
-    pairs: dict[tuple[bool, str, str], list[tuple[Any, Any]]] = {}
+    pairs: dict[tuple[bool, str, str], list[tuple[Setup, Setup]]] = {}
     for later, earlier in setup_pairs(setups):
         flipped = (later.realtime, earlier.method, later.method)
         if flipped in pairs:  # listed the other way round in an earlier environment

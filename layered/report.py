@@ -9,13 +9,16 @@ import shutil
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from layered.compare import (ACROSS_COLUMNS, COLUMNS, RESAMPLES, across_csv_row, across_envs, across_table, adjusted,
                              between_phases, between_setups, comparisons_table, csv_row, number, phased)
 from layered.progress import count
+
+if TYPE_CHECKING:
+    from layered.summary import Run, Setup
 
 DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]  # the thresholds of the paper's Fig. 2
 SWEEP_FILE = "threshold-sweep.csv"
@@ -209,12 +212,12 @@ def _spread(mean: float, std: float, seeds: int, fmt: str) -> str:
     return f"{fmt.format(mean)} ± {fmt.format(std)}"
 
 
-def _cell(setup: Any, key: str, fmt: str) -> str:
+def _cell(setup: Setup, key: str, fmt: str) -> str:
     mean, std = setup.stat(key)
     return _spread(mean, std, len(setup.runs), fmt)
 
 
-def wide_table(setups: Sequence[Any], metrics: Sequence[Metric]) -> str:
+def wide_table(setups: Sequence[Setup], metrics: Sequence[Metric]) -> str:
     """One row per environment, one column per (metric, method): mean ± std over seeds."""
     methods = list(dict.fromkeys(s.method for s in setups))
     envs = list(dict.fromkeys(s.env for s in setups))
@@ -233,7 +236,7 @@ def from_report(out: Path, path: Path) -> str:
     return os.path.relpath(path.resolve(), out.resolve())
 
 
-def seeds_table(setups: Sequence[Any], out: Path) -> str:
+def seeds_table(setups: Sequence[Setup], out: Path) -> str:
     """Which runs make up each setup (their directories relative to the report's, `out`): the traceability of every
     number in the tables."""
     lines = ["| environment | setup | seed ids | run directories |", "|---|---|---|---|"]
@@ -245,7 +248,7 @@ def seeds_table(setups: Sequence[Any], out: Path) -> str:
     return "\n".join(lines)
 
 
-def per_seed_table(setup: Any) -> str:
+def per_seed_table(setup: Setup) -> str:
     """One row per seed of a setup: its last phase's measures and, where the stack trained in phases, each
     earlier phase's best weights on fresh episodes (for TLA, the slow layer alone), so that what the means
     hide shows: a seed that stands still, a phase that lowers the layer it started from."""
@@ -266,10 +269,11 @@ def per_seed_table(setup: Any) -> str:
     return "\n".join(lines)
 
 
-def write_seeds_csv(setups: Sequence[Any], path: Path) -> None:
+def write_seeds_csv(setups: Sequence[Setup], path: Path) -> None:
     """Every phase of every run on a row of its own (setup, seed, phase, what it learned and every measure of
     `results.json`, and the run's directory relative to the report's), for analyses of one's own."""
-    rows = [(s, r, p) for s in setups for r in s.runs for p in (r.phases or (r.final,))]
+    rows: list[tuple[Setup, Run, dict[str, Any]]] = [(s, r, p) for s in setups for r in s.runs
+                                                     for p in (r.phases or (r.final,))]
     keys = sorted({k for _, _, p in rows for k, v in p.items() if k != "phase" and not np.isnan(number(v))})
     with path.open("w", newline="") as f:
         writer = csv.writer(f)
@@ -283,7 +287,7 @@ CURVE_FRACTIONS = (0.1, 0.25, 0.5, 0.75, 1.0)
 """Where along a setup's last-phase curve the report's table of it reads the return: a tenth of it ... its end."""
 
 
-def curve_points(setup: Any, fractions: Sequence[float] = CURVE_FRACTIONS) -> list[tuple[float, float, float]]:
+def curve_points(setup: Setup, fractions: Sequence[float] = CURVE_FRACTIONS) -> list[tuple[float, float, float]]:
     """(step, mean, std over seeds) of a setup's evaluation return at the evaluations of its last-phase curve
     nearest to each of `fractions` of that curve's last step."""
     steps, mean, std, _, _ = setup.curve()
@@ -299,7 +303,7 @@ def _steps(n: float) -> str:
     return f"{n:.0f}"
 
 
-def curve_table(setups: Sequence[Any]) -> str:
+def curve_table(setups: Sequence[Setup]) -> str:
     """The learning curves in numbers: each setup's evaluation return, mean ± std over seeds, along its last phase
     (`CURVE_FRACTIONS`, each cell with the step it was read at)."""
     head = ["environment", "setup", *(f"{fraction:.0%}" for fraction in CURVE_FRACTIONS)]
@@ -311,7 +315,7 @@ def curve_table(setups: Sequence[Any]) -> str:
     return "\n".join(lines)
 
 
-def write_curves_csv(setups: Sequence[Any], path: Path) -> None:
+def write_curves_csv(setups: Sequence[Setup], path: Path) -> None:
     """Every point of every setup's learning curves, as the figure draws them: over the last phase and over the
     whole run, evaluation by evaluation, mean, std, lowest and highest over seeds."""
     with path.open("w", newline="") as f:
@@ -324,7 +328,7 @@ def write_curves_csv(setups: Sequence[Any], path: Path) -> None:
                     writer.writerow([s.env, s.label, s.method, len(s.runs), view, *(float(v) for v in point)])
 
 
-def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
+def plot_setup_curves(setups: Sequence[Setup], out_png: Path) -> None:
     """Learning curves per environment, mean over seeds with a ±1 std band (clipped to the lowest and
     highest seed): over the last phase
     (what the AUC measures) and, where a setup trains in several phases, over the whole run, so
@@ -362,11 +366,11 @@ def plot_setup_curves(setups: Sequence[Any], out_png: Path) -> None:
     plt.close(fig)
 
 
-def _slug(setup: Any) -> str:
+def _slug(setup: Setup) -> str:
     return re.sub(r"[^\w.-]+", "-", f"{setup.env}-{setup.method}").strip("-")
 
 
-def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str]:
+def _threshold_and_gallery_figures(setups: Sequence[Setup], out: Path) -> list[str]:
     """Fig. 2 per setup from its runs' `layered eval --threshold-sweep` (mean over seeds), and the
     first gallery of states where a layer acts (`layered eval --gallery`)."""
     parts: list[str] = []
@@ -404,7 +408,7 @@ def _threshold_and_gallery_figures(setups: Sequence[Any], out: Path) -> list[str
     return parts
 
 
-def write_report(setups: Sequence[Any], out: Path) -> str:
+def write_report(setups: Sequence[Setup], out: Path) -> str:
     """Tables 1-3 as Markdown (report.md) and CSV (summary.csv), the setups and phases compared over seeds
     (comparisons.csv) and the methods over environments (across-envs.csv), and learning curves (curves.png, and
     their points in curves.csv)."""
