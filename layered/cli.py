@@ -632,7 +632,8 @@ def _deploy(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, before)  # (for a caller of `main` in its own process)
     print(table(rows))
-    print(f"written to {out}: deploy.md{', deploy.png' if len(rows) > 1 else ''} and one JSON file per setting")
+    plotted = sum(1 for row in rows if row["episodes"]) > 1
+    print(f"written to {out}: deploy.md{', deploy.png' if plotted else ''} and one JSON file per setting played")
     stopped = args.on_fault == "stop" and any(row["faults"] for row in rows)
     unequal = [row["setting"] for row in rows
                if row["lockstep"] and not row["faults"] and not row["same_actions_as_eval"]]

@@ -89,32 +89,39 @@ def _deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: P
     reference = library_episodes(run, episodes, threshold)
     tolerance = TOLERANCE * float(np.max(rules.high - rules.low))
     env = make_env(run.recipe.env.id)
+    how = {"run": str(run.path.resolve()), "weights": run.weights or run.recipe.train.select, "threshold": threshold,
+           "transport": transport, "episodes_asked": episodes}
     rows = []
     try:
-        for setting in settings:
+        for k, setting in enumerate(settings):
             processes = start_layers(rules, directory, setting, run.seed, transport)
             driver = Driver(rules, processes, timestep, setting, notify)
-            played = []
+            played, stopped = [], False
             try:
                 for seed in episode_seeds(run.seed, episodes):
                     played.append(driver.play(env, seed))
             except Stop:
-                pass
+                stopped = True
             finally:
                 for process in processes.values():
                     process.close()
-            row = _row(setting, driver, played, reference, timestep, tolerance)
-            row["pids"] = [process.pid for process in processes.values()]
+            row = {**_row(setting, driver, played, reference, timestep, tolerance), **how,
+                   "pids": [process.pid for process in processes.values()]}
             (out / f"{setting.label}.json").write_text(json.dumps(row, indent=2) + "\n")
             rows.append(row)
             notify(f"{setting.label}: return {row['return_mean']:.1f} (eval {row['eval_return_mean']:.1f}) over "
                    f"{row['episodes']} episodes, {row['steps_per_s']:.0f} steps/s; written to "
                    f"{out / (setting.label + '.json')}" if played else f"{setting.label}: no episode completed")
+            if stopped and k < len(settings) - 1:
+                notify(f"the deployment ends (--on-fault stop): {', '.join(s.label for s in settings[k + 1:])} not "
+                       "played")
+            if stopped:
+                break
     finally:
         env.close()
     (out / "deploy.md").write_text(table(rows) + "\n")
-    if len(rows) > 1:
-        plot(rows, out / "deploy.png", f"{run.recipe.env.id}: {', '.join(run.active)} deployed as processes")
+    if len(played_rows := [row for row in rows if row["episodes"]]) > 1:
+        plot(played_rows, out / "deploy.png", f"{run.recipe.env.id}: {', '.join(run.active)} deployed as processes")
     return rows
 
 

@@ -30,7 +30,6 @@ import tomli_w
 import torch
 
 from layered.best_journal import BestJournal, best_folder
-from layered.checkpoint import save_checkpoint
 from layered.checkpoint_writer import CheckpointWriter, writes_beside
 from layered.env_group import Envs
 from layered.envs import make_env, snapshot_env
@@ -56,7 +55,7 @@ from layered.group_state import (
 )
 from layered.heap import keep_freed_memory
 from layered.interrupt import StopRequest, Stopped
-from layered.learner_set import build_learners, keep_start_weights, precisions, start_from_weights
+from layered.learner_set import build_learners, keep_start_weights, precisions, save_layer_weights, start_from_weights
 from layered.learners import LEARNERS
 from layered.learners.choice_group import ChoiceLearnerGroup
 from layered.learners.td3 import TD3Config
@@ -84,10 +83,10 @@ from layered.runs import (
 from layered.runstate import LoopState
 from layered.stack import Stack
 from layered.trainer import (
-    FRESH_MEASURES,
     PhaseResult,
     checkpoint_interval,
     curve_auc,
+    fresh_row,
     phase_budget,
     phase_row,
     training_seed,
@@ -578,10 +577,8 @@ class Group:
         for k, (seed, result) in enumerate(zip(self.seeds, results, strict=True)):
             folder = seed.out / "checkpoints"
             for name in phase.learn:
-                save_checkpoint(folder / f"{name}.pt", name, self.learners[name].seed_state_dict(k))
-                save_checkpoint(folder / f"{name}.best.pt", name, seed.state.best[name])
-            best_step, best = seed.state.curve[seed.state.best_index()]
-            rows.append({**phase_row(result), "best_step": best_step, "best_return_mean": best.return_mean})
+                save_layer_weights(folder, name, self.learners[name].seed_state_dict(k), seed.state.best[name])
+            rows.append(phase_row(result, seed.state))
         final = {name: [self.learners[name].seed_state_dict(k) for k in range(self.rows)] for name in phase.learn}
         evaluator = self._evaluator(phase, self.recipe.eval.fresh_episodes) if self.recipe.eval.fresh_episodes else None
         try:
@@ -606,7 +603,7 @@ class Group:
             return
         results = self._evaluations(evaluator, self.recipe.eval.fresh_episodes, fresh=True)
         for row, result in zip(rows, results, strict=True):
-            row |= {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
+            row |= fresh_row(label, result)
 
 
 def _end_periods(pending: dict[int, Pending], ended: np.ndarray, rules: Rules, obs: np.ndarray, stack: Stack) -> None:

@@ -51,8 +51,8 @@ def load_learners(recipe: Recipe, run_dir: Path, weights: str | None = None, pha
         if under_way is not None and name in under_way:
             learners[name].load_state_dict(under_way[name])
             continue
-        suffix = {"final": ".pt", "best": ".best.pt"}[chosen[name]]
-        learners[name].load_state_dict(load_checkpoint(run_dir / "checkpoints" / f"{name}{suffix}", name))
+        learners[name].load_state_dict(load_checkpoint(layer_checkpoint(run_dir / "checkpoints", name, chosen[name]),
+                                                       name))
     return learners
 
 
@@ -89,10 +89,22 @@ def precisions(learners: Mapping[str, Learner]) -> dict[str, str]:
     return {name: learner.computes_in() for name, learner in learners.items()}
 
 
+def layer_checkpoint(folder: Path, name: str, weights: str) -> Path:
+    """Where a run's checkpoints folder keeps layer `name`'s `final` or `best` weights (of the last phase that
+    trained it)."""
+    return folder / f"{name}{'.best' if weights == 'best' else ''}.pt"
+
+
+def save_layer_weights(folder: Path, name: str, final: dict[str, Any], best: dict[str, Any]) -> None:
+    """Keep layer `name`'s final and best weights (`state_dict`s) in a run's checkpoints folder."""
+    for weights, state in (("final", final), ("best", best)):
+        save_checkpoint(layer_checkpoint(folder, name, weights), name, state)
+
+
 def keep_start_weights(recipe: Recipe, learners: dict[str, Learner], folder: Path) -> None:
     """Copy the start weights into the run's checkpoints as the layer's final and best, so that the
     run evaluates without the original file (a phase that trains the layer replaces them)."""
     for layer in recipe.layers:
         if layer.weights is not None:
-            for suffix in (".pt", ".best.pt"):
-                save_checkpoint(folder / f"{layer.name}{suffix}", layer.name, learners[layer.name].state_dict())
+            weights = learners[layer.name].state_dict()
+            save_layer_weights(folder, layer.name, weights, weights)

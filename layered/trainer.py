@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from layered.agents import LayeredEnv, make_aec_env
-from layered.checkpoint import save_checkpoint
+from layered.learner_set import save_layer_weights
 from layered.evaluate import evaluation_seed
 from layered.group_eval import Stacks, close_evaluator, evaluate_run, open_run_evaluator
 from layered.interrupt import StopRequest, Stopped
@@ -106,10 +106,8 @@ def _finish_phase(run: Training, state: LoopState, phase: Phase, result: PhaseRe
     keep_final = recipe.train.select == "final"
     final = {name: copy.deepcopy(learners[name].state_dict()) for name in phase.learn} if keep_final else {}
     for name in phase.learn:
-        save_checkpoint(folder / f"{name}.pt", name, learners[name].state_dict())
-        save_checkpoint(folder / f"{name}.best.pt", name, state.best[name])
-    best_step, best = state.curve[state.best_index()]
-    row = {**phase_row(result), "best_step": best_step, "best_return_mean": best.return_mean}
+        save_layer_weights(folder, name, learners[name].state_dict(), state.best[name])
+    row = phase_row(result, state)
     evaluator = open_run_evaluator(recipe, phase.active, recipe.eval.fresh_episodes) if recipe.eval.fresh_episodes \
         else None
     try:
@@ -132,7 +130,7 @@ def _fresh_evaluation(run: Training, evaluator: Stacks | None, label: str) -> di
         return {}
     recipe = run.recipe
     result = evaluate_run(evaluator, run.learners, recipe.eval.fresh_episodes, evaluation_seed(recipe, fresh=True))
-    return {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}
+    return fresh_row(label, result)
 
 
 def run_phase(run: Training, state: LoopState, phase: Phase, budget: int) -> PhaseResult:
@@ -280,9 +278,17 @@ def curve_auc(recipe: Recipe, curve: list[tuple[int, Evaluation]]) -> float | No
     return normalised_auc([s for s, _ in curve], [e.return_mean for _, e in curve], return_range)
 
 
-def phase_row(r: PhaseResult) -> dict[str, Any]:
-    """A phase's results as one flat row of results.json."""
+def phase_row(r: PhaseResult, state: LoopState) -> dict[str, Any]:
+    """A phase's results as one flat row of results.json, with its best evaluation's step and return (of
+    `state`'s curve)."""
+    best_step, best = state.curve[state.best_index()]
     return {
         "phase": r.index, "learn": list(r.phase.learn), "active": list(r.phase.active), "steps": r.steps,
-        "auc": r.auc, **r.final.row(),
+        "auc": r.auc, **r.final.row(), "best_step": best_step, "best_return_mean": best.return_mean,
     }
+
+
+def fresh_row(label: str, result: Evaluation) -> dict[str, float]:
+    """An evaluation on fresh episodes of a phase's `label` (final or best) weights, as its results row's
+    `fresh_<label>_<measure>` values."""
+    return {f"fresh_{label}_{key}": value for key, value in result.row().items() if key in FRESH_MEASURES}

@@ -325,10 +325,12 @@ def test_a_stalled_layer_is_noticed_within_its_period_and_stop_ends_the_deployme
     run = untrained("pendulum/tla-c.toml", [], tmp_path)
     lines = []
     speed = 2.5  # base steps of 20 ms: the fast layer's period, and the floor of a stall
-    [row] = deploy(run, [Settings(speed=speed, faults={"fast": Fault("stall", 20)}, on_fault="stop")],
-                   episodes=2, out=tmp_path / "deploy", notify=lines.append)
-    assert len(lines) == 2 and "stalled" in lines[0] and "stopping" in lines[0]
-    assert row["episodes"] == 0 and len(row["faults"]) == 1
+    settings = [Settings(speed=s, faults={"fast": Fault("stall", 20)}, on_fault="stop") for s in (speed, 2 * speed)]
+    [row] = deploy(run, settings, episodes=2, out=tmp_path / "deploy", notify=lines.append)  # the second not played
+    assert len(lines) == 3 and "stalled" in lines[0] and "stopping" in lines[0]
+    assert lines[2] == "the deployment ends (--on-fault stop): 5x not played"
+    assert row["episodes"] == 0 and len(row["faults"]) == 1 and not (tmp_path / "deploy" / "5x.json").exists()
+    assert (row["transport"], row["weights"], row["threshold"], row["episodes_asked"]) == ("process", "best", None, 2)
     noticed = int(lines[0].split(" at step ")[1].split()[0])
     # the 20th request is step 19's; its deadline is the end of step 19, a stall one period (one step) past it
     assert 20 <= noticed <= 19 + 1 + 1 + 3  # (and up to 3 steps of the OS's scheduling)
