@@ -587,11 +587,15 @@ def _export(args: argparse.Namespace) -> int:
     recipe, learners, active = run.recipe, run.learners, run.active
     out = args.out or args.run_dir / f"export-{args.format}"
     torch.set_num_threads(1)  # decisions are timed on one core, as on a robot's controller
+    if out.is_dir():  # an earlier export's check stands for none of this one's files
+        (out / "check.json").unlink(missing_ok=True)
     export_stack(recipe, learners, active, out, args.format, args.threshold)
     print(f"exported {', '.join(active)} ({args.format}) to {out}")
     result = compare(recipe, learners, active, out, args.episodes, run.seed,
                      args.threshold)
-    (out / "check.json").write_text(json.dumps(result.row(), indent=2) + "\n")
+    how = {"run": str(args.run_dir.resolve()), "weights": run.weights or recipe.train.select,
+           "threshold": args.threshold}
+    (out / "check.json").write_text(json.dumps({**how, **result.row()}, indent=2) + "\n")
     verdict = "the same executed actions" if result.matches else "DIFFERENT executed actions"
     print(f"checked against the library on the observations of {result.episodes} episodes ({result.steps} steps): "
           f"{verdict} (largest difference {result.max_difference:.2g}, tolerance {result.tolerance:.2g} for "
@@ -845,6 +849,9 @@ def _how_to_continue(args: argparse.Namespace) -> str:
         return "running the same sweep again resumes every run from its last checkpoint"
     if args.command == "deploy":
         return "every layer's process was stopped; the settings that finished are written"
+    if args.command == "export":
+        out = args.out or args.run_dir / f"export-{args.format}"
+        return f"{out} may hold an export that was not checked (it has no check.json); run the same command again"
     run = getattr(args, "out", None) or getattr(args, "run_dir", None)
     if run is not None and ((run / "run.json").exists() or any(run.glob("seed*/run.json"))):
         return f"continue from the last checkpoint with: layered resume {run}"

@@ -49,9 +49,11 @@ def plugin_sources(stack: Stack) -> list[Path]:
     return sorted(f for f in files if f.parent != library)
 
 
-def stack_spec(recipe: Recipe, stack: Stack, backend: str, plugins: list[str]) -> dict[str, Any]:
+def stack_spec(recipe: Recipe, stack: Stack, backend: str, plugins: list[str], env_observation_dims: int
+               ) -> dict[str, Any]:
     """What the runtime needs of an evaluation stack, as plain JSON values."""
     return {"backend": backend, "env": recipe.env.id, "rules": stack.rules.to_json(), "plugins": plugins,
+            "env_observation_dims": env_observation_dims,
             "observation_dims": {layer.name: int(space.shape[0])
                                  for layer, space in zip(stack.layers, stack.observation_spaces, strict=True)}}
 
@@ -93,7 +95,8 @@ def export_stack(recipe: Recipe, learners: Mapping[str, Learner], active: list[s
     env = make_aec_env(recipe, active=active, evaluation=True, threshold=threshold)
     env.close()
     sources = plugin_sources(env.stack)
-    spec = stack_spec(recipe, env.stack, backend, [f"plugins/{source.name}" for source in sources])
+    spec = stack_spec(recipe, env.stack, backend, [f"plugins/{source.name}" for source in sources],
+                      int(env.base.observation_space.shape[0]))
     modules = {name: _policy(learners[name], name) for name in active}
     out.mkdir(parents=True, exist_ok=True)
     for name, module in modules.items():

@@ -113,8 +113,9 @@ def open_run(run_dir: Path, weights: str | None = None, plugins: list[str] | Non
     where = "at its last checkpoint " + (f"phase {at.phase} was at step {at.step}" if at.best
                                           else f"phase {at.stack_phase} had ended")
     if not unfinished:
-        raise RunDirError(f"{run_dir} has not finished ({where}); `layered eval {run_dir}` evaluates its best "
-                          "weights so far")
+        going = "let it finish" if writer(run_dir) else f"`layered resume {run_dir}` finishes it"
+        raise RunDirError(f"{run_dir} has not finished ({where}): {going}, then try again; `layered eval {run_dir}` "
+                          "evaluates its best weights so far")
     phase = phases_of(recipe)[at.stack_phase]
     holder = writer(run_dir)
     state = f"is being trained by {holder}" if holder else "has stopped"

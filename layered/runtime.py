@@ -6,7 +6,7 @@ combiners it merges through, copied unchanged) and the source of any plugin comb
 robot loop needs only:
 
     from layered_runtime import load_stack
-    stack = load_stack("exported/")     # picks TorchScript or ONNX from the files present
+    stack = load_stack("exported/")     # TorchScript or ONNX, as stack.json's backend says
     stack.reset()                       # at the start of every episode
     action = stack.step(obs)            # once per base step: observation in, executed action out
 
@@ -52,7 +52,11 @@ class ExportedStack:
 
     def step(self, obs: np.ndarray) -> np.ndarray:
         """The action to execute at this base step, given the environment's observation."""
-        decided = self.rules.decide_all(np.asarray(obs, np.float32).reshape(1, -1), self._act)
+        obs = np.asarray(obs, np.float32).reshape(1, -1)
+        if obs.shape[1] != self.spec.get("env_observation_dims", obs.shape[1]):
+            raise ValueError(f"the stack takes observations of {self.spec['env_observation_dims']} numbers (those of "
+                             f"{self.spec['env']}, flattened), got {obs.shape[1]}")
+        decided = self.rules.decide_all(obs, self._act)
         self.decided = [self.names[i] for i, rows in decided.items() if rows[0]]
         composition = self.rules.compose()
         self.contributions = {self.names[i]: composition.contributions[i][0].copy()  # the rules reuse their arrays
@@ -135,4 +139,7 @@ def load_policy(directory: str | Path, name: str, backend: str) -> Policy:
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
     suffix, load = BACKENDS[backend]
-    return load(Path(directory) / f"{name}{suffix}")
+    path = Path(directory) / f"{name}{suffix}"
+    if not path.exists():
+        raise FileNotFoundError(f"no {backend} policy {path}: export the run with --format {backend}")
+    return load(path)

@@ -15,6 +15,7 @@ from layered.export import export_stack
 from layered.latency import compare
 from layered.learner_set import build_learners
 from layered.orders import phases_of
+from layered.runtime import load_stack
 
 SMALL = ["learner.hidden=[32, 32]"]
 STACKS = {
@@ -88,6 +89,16 @@ def test_exported_directory_runs_with_torch_alone(tmp_path):
     assert done.stdout.strip().endswith("['fast']")  # step 5: period 4 slow layer idle, the fast one decides
 
 
+def test_the_runtime_refuses_an_observation_of_another_size_and_a_format_not_exported_in_one_line(tmp_path):
+    *_, out = exported("pendulum/tla-c.toml", [], tmp_path)
+    stack = load_stack(out)
+    stack.reset()
+    with pytest.raises(ValueError, match=r"observations of 3 numbers \(those of Pendulum-v1, flattened\), got 4"):
+        stack.step(np.ones(4, np.float32))
+    with pytest.raises(FileNotFoundError, match=r"no onnx policy .*slow\.onnx: export the run with --format onnx"):
+        load_stack(out, backend="onnx")
+
+
 HALVING = """
 import numpy as np
 
@@ -145,7 +156,30 @@ def test_export_command_on_a_trained_run(tmp_path, tiny, capsys):
     check = json.loads((run / "export-torchscript" / "check.json").read_text())
     assert check["steps"] == 200 and check["exported"]["median_us"] > 0 and check["matches"]
     assert check["exported_return"] == check["library_return"]
+    assert (check["run"], check["weights"], check["threshold"]) == (str(run.resolve()), "best", None)
     assert np.isfinite(check["library"]["p99_us"])
     assert main(["eval", str(run), "--episodes", "1"]) == 0  # the same episode, its products batched as an eval's
     evaluated = json.loads((run / "eval" / "threshold-recipe-episodes-1.json").read_text())
     assert check["library_return"] == pytest.approx(evaluated["return_mean"], rel=1e-5)
+
+
+def test_an_export_cut_short_says_its_files_are_unchecked_and_leaves_no_earlier_check(tmp_path, tiny, monkeypatch,
+                                                                                        capsys):
+    """A Ctrl-C between writing the files and checking them (or a check that fails) leaves an export without a
+    check.json, and says so; an earlier export's check.json is gone once the files it checked are replaced."""
+    import layered.latency
+
+    run = tmp_path / "run"
+    assert main(["train", "pendulum/tla-c.toml", "--out", str(run), "--steps", "150", *tiny]) == 0
+    assert main(["export", str(run), "--episodes", "1"]) == 0 and (run / "export-torchscript" / "check.json").exists()
+    capsys.readouterr()
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(layered.latency, "compare", interrupted)
+    assert main(["export", str(run), "--episodes", "1"]) == 130
+    said = capsys.readouterr().err
+    assert f"{run / 'export-torchscript'} may hold an export that was not checked (it has no check.json)" in said
+    export = run / "export-torchscript"
+    assert (export / "stack.json").exists() and not (export / "check.json").exists()

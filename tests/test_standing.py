@@ -72,7 +72,9 @@ def test_a_stopped_run_is_evaluated_at_its_best_weights_so_far(tmp_path, monkeyp
     assert (out / f"eval/unfinished/phase{phase}-step-{loop['step']}/weights-final/"
             "threshold-recipe-episodes-1.json").exists()
     assert main(["export", str(out), "--format", "torchscript"]) == 2
-    assert f"{out} has not finished (at its last checkpoint phase {phase} was at step" in capsys.readouterr().err
+    refused = capsys.readouterr().err
+    assert f"{out} has not finished (at its last checkpoint phase {phase} was at step" in refused
+    assert f"`layered resume {out}` finishes it, then try again" in refused
     assert not (out / "export-torchscript").exists()
 
 
