@@ -627,7 +627,7 @@ def _deploy(args: argparse.Namespace) -> int:
                 else []) + [Settings(speed, False, links, faults, args.on_fault) for speed in speeds]
     out = args.out or args.run_dir / "deploy"
     torch.set_num_threads(1)
-    before = signal.signal(signal.SIGTERM, lambda *_: sys.exit(EXIT_SIGNAL["SIGTERM"]))  # every process is stopped
+    before = signal.signal(signal.SIGTERM, _stopped_by_sigterm)  # (unwinding, every layer's process is stopped)
     try:
         rows = deploy(run, settings, args.episodes, out, args.threshold, transport=args.transport,
                       address=args.address)
@@ -646,20 +646,33 @@ def _deploy(args: argparse.Namespace) -> int:
     return 1 if stopped or unequal else 0
 
 
+def _stopped_by_sigterm(signum: int, frame: Any) -> NoReturn:
+    """A deployment's SIGTERM: one line, as a Ctrl-C's, then exit 143 (stopping every layer's process)."""
+    print("\nlayered: SIGTERM: stopped at once; every layer's process is stopped; the settings that finished are "
+          "written", file=sys.stderr)
+    sys.exit(EXIT_SIGNAL["SIGTERM"])
+
+
 def _per_layer(values: list[str], separator: str, parse: Callable[[str], Any], layers: list[str],
                option: str, bare_for_all: bool) -> dict[str, Any]:
-    """`LAYER<sep>value` entries parsed per layer name; with `bare_for_all`, a bare value is every layer's."""
-    out = {}
+    """`LAYER<sep>value` entries parsed per layer name; with `bare_for_all`, a bare value is that of every layer not
+    named. A layer given twice (or two bare values) is refused, rather than the last one silently taking over."""
+    named, bare = {}, []
     for value in values:
         name, found, text = value.partition(separator)
         if not found and bare_for_all:
-            out.update({layer: parse(value) for layer in layers})
+            bare.append(parse(value))
             continue
         if not found or name not in layers:
             raise ValueError(f"{option} {value!r}: name a layer of this stack ({', '.join(layers)}) "
                              f"as LAYER{separator}…")
-        out[name] = parse(text)
-    return out
+        if name in named:
+            raise ValueError(f"{option}: layer {name!r} is given twice; give it once")
+        named[name] = parse(text)
+    if len(bare) > 1:
+        raise ValueError(f"{option}: {len(bare)} values for every layer; give one (and LAYER{separator}… for a layer "
+                         "of its own)")
+    return {**{layer: bare[0] for layer in layers if bare}, **named}
 
 
 def _speeds(text: str) -> list[float]:

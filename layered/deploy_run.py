@@ -71,10 +71,15 @@ def deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: Pa
     if transport == "ray" and any(link.mean_s for setting in settings for link in setting.links.values()):
         raise LayerFault("--link-delay emulates a link between local processes; with Ray actors the network's "
                          "own delays apply")
+    made = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     ray = start_ray(address) if transport == "ray" else None
     try:
         return _deploy(run, settings, episodes, out, threshold, notify, transport)
+    except BaseException:
+        if made and not any(out.iterdir()):  # (refused before anything was written: leave no empty folder)
+            out.rmdir()
+        raise
     finally:
         if ray is not None:
             ray.shutdown()

@@ -13,6 +13,7 @@ import contextlib
 import io
 import json
 import logging
+import math
 import inspect
 import shutil
 import warnings
@@ -96,7 +97,7 @@ def export_stack(recipe: Recipe, learners: Mapping[str, Learner], active: list[s
     env.close()
     sources = plugin_sources(env.stack)
     spec = stack_spec(recipe, env.stack, backend, [f"plugins/{source.name}" for source in sources],
-                      int(env.base.observation_space.shape[0]))
+                      math.prod(env.base.observation_space.shape or (0,)))
     modules = {name: _policy(learners[name], name) for name in active}
     out.mkdir(parents=True, exist_ok=True)
     for name, module in modules.items():

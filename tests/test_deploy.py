@@ -120,6 +120,14 @@ def test_link_delays_parse(text, mean, jitter):
     assert min(samples) >= mean - jitter and max(samples) <= mean + jitter
 
 
+@pytest.mark.parametrize("given", [["slow=2ms", "5ms"], ["5ms", "slow=2ms"]])
+def test_a_layers_own_link_delay_takes_the_place_of_the_one_for_every_layer_in_either_order(given):
+    from layered.cli import _per_layer
+
+    links = _per_layer(given, "=", Link.parse, ["slow", "fast"], "--link-delay", bare_for_all=True)
+    assert links == {"slow": Link(2e-3), "fast": Link(5e-3)}
+
+
 @pytest.mark.parametrize("text", ["5", "5ms±6ms", "fast", "-1ms"])
 def test_bad_link_delays_are_refused(text):
     with pytest.raises(ValueError, match="link delay"):
@@ -411,6 +419,9 @@ def test_deploy_command_writes_what_it_prints_and_leaves_no_process(trained, tmp
     (["--fault", "fast:hang@3"], "die@N or stall@N"),
     (["--link-delay", "5"], "is not a duration"),
     (["--link-delay", "5ms", "--transport", "ray"], "with Ray actors the network's own delays apply"),
+    (["--link-delay", "slow=5ms", "--link-delay", "slow=6ms"], "--link-delay: layer 'slow' is given twice"),
+    (["--link-delay", "5ms", "--link-delay", "6ms"], "--link-delay: 2 values for every layer; give one"),
+    (["--fault", "fast:die@3", "--fault", "fast:stall@5"], "--fault: layer 'fast' is given twice"),
 ])
 def test_bad_deploy_options_are_refused_in_one_line(trained, capsys, args, message):
     out = trained
@@ -434,7 +445,8 @@ def _interruptible():
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def test_ctrl_c_stops_the_driver_and_every_layer_process(trained, tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_or_sigterm_stops_the_driver_and_every_layer_process(trained, tmp_path, signum):
     out = tmp_path / "deploy"
     command = [sys.executable, "-m", "layered.cli", "deploy", str(trained), "--speed", "1", "--episodes", "20",
                "--out", str(out)]
@@ -444,11 +456,16 @@ def test_ctrl_c_stops_the_driver_and_every_layer_process(trained, tmp_path):
     while not (out / "export-torchscript" / "stack.json").exists() and time.monotonic() < deadline:
         time.sleep(0.2)
     time.sleep(8)  # the layers' processes start (a few seconds) and play
-    os.killpg(process.pid, signal.SIGINT)  # as Ctrl-C at a terminal: the whole foreground group
+    if signum == signal.SIGINT:
+        os.killpg(process.pid, signal.SIGINT)  # as Ctrl-C at a terminal: the whole foreground group
+    else:
+        os.kill(process.pid, signal.SIGTERM)  # as a process manager stops the driver alone
     _, err = process.communicate(timeout=30)
-    assert process.returncode == 130, err
-    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("layered: stopped")
-    assert "every layer's process was stopped" in err
+    assert process.returncode == (130 if signum == signal.SIGINT else 143), err
+    last = err.strip().splitlines()[-1]
+    assert "Traceback" not in err and last.startswith("layered: stopped" if signum == signal.SIGINT else
+                                                      "layered: SIGTERM: stopped at once")
+    assert "every layer's process" in last
     deadline = time.monotonic() + 10  # multiprocessing's resource tracker leaves when it sees the driver gone
     while time.monotonic() < deadline:
         try:
