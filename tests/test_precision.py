@@ -167,6 +167,7 @@ def test_a_run_records_what_auto_computed_in_and_the_report_tells_the_machines_r
                         "set": {"slow": "float32", "fast": "bfloat16"}}
     setups = group(find_runs([tmp_path]))
     assert sorted((s.label, sorted(r.seed for r in s.runs)) for s in setups) == [
-        ("p/tla-c layers.fast.learner.precision=bfloat16 layers.slow.learner.precision=bfloat16", [0]),
-        ("p/tla-c layers.fast.learner.precision=bfloat16 layers.slow.learner.precision=float32", [0]),
-        ("p/tla-c layers.fast.learner.precision=float32 layers.slow.learner.precision=float32", [1, 2])]
+        ("p/tla-c layers.fast.learner.precision=bfloat16 layers.slow.learner.precision=bfloat16 trained=alone", [0]),
+        ("p/tla-c layers.fast.learner.precision=bfloat16 layers.slow.learner.precision=float32 trained=alone", [0]),
+        ("p/tla-c layers.fast.learner.precision=float32 layers.slow.learner.precision=float32 trained=group",
+         [1, 2])]
