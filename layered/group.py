@@ -34,7 +34,6 @@ from layered.checkpoint_writer import CheckpointWriter, writes_beside
 from layered.env_group import Envs
 from layered.envs import make_env, snapshot_env
 from layered.errors import Diverged
-from layered.events import EventLog
 from layered.evaluate import evaluation_seed
 from layered.group_eval import Stacks, all_rows, close_evaluator, evaluate_seeds, open_group_evaluator, open_stacks
 from layered.group_state import (
@@ -60,14 +59,14 @@ from layered.learners import LEARNERS
 from layered.learners.choice_group import ChoiceLearnerGroup
 from layered.learners.td3 import TD3Config
 from layered.learners.td3_group import TD3Group
-from layered.logs import CsvLog
 from layered.metrics import Evaluation
 from layered.orders import Phase, phases_of
 from layered.pending_losses import PendingLosses
 from layered.progress import Progress, count
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.replay_journal import ReplayJournal, replay_folder, replays_of
-from layered.results import EPISODE_FIELDS, mean_losses, metrics_fields, write_finished_phases, write_results
+from layered.results import mean_losses, write_finished_phases, write_results
+from layered.run_logs import RunLogs
 from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
 from layered.rules import Rules
 from layered.runs import (
@@ -113,9 +112,7 @@ class Seed:
 
     recipe: Recipe
     out: Path
-    metrics: CsvLog
-    episodes: CsvLog
-    events: EventLog | None = None  # TensorBoard scalars, when the recipe asks for them
+    logs: RunLogs
     state: LoopState = field(default_factory=LoopState)
 
 
@@ -224,10 +221,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
                 raise Diverged(f"{e}; {way}", e.layer) from None
             finally:
                 for seed in seeds:
-                    seed.metrics.close()
-                    seed.episodes.close()
-                    if seed.events is not None:
-                        seed.events.close()
+                    seed.logs.close()
             for seed in seeds:
                 write_results(seed.recipe, seed.state.rows, seed.out, label)
             clear_group(directory)  # every seed's run directory now holds its results
@@ -240,13 +234,10 @@ def _open_seed(recipe: Recipe, out: Path, learners: dict[str, Any], info: RunInf
     if saved is None:  # (with a checkpoint of the group, its seeds' files are kept as they are)
         prepare_run_dir(out, tomli_w.dumps(resolved(recipe)), info, resume, precisions(learners))
     resumed_at = None if saved is None else (saved.states[k].phase, saved.loop.step)
-    seed = Seed(recipe, out, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
-                CsvLog(out / "episodes.csv", EPISODE_FIELDS),
-                EventLog(out / "tensorboard", resumed_at) if recipe.log.tensorboard else None)
+    seed = Seed(recipe, out, RunLogs.open(out, recipe, resumed_at))
     if saved is None:
         keep_start_weights(recipe, learners, out / "checkpoints")
-        seed.metrics.start()
-        seed.episodes.start()
+        seed.logs.begin()
     else:
         seed.state = saved.states[k]  # (its logs are cut back to where it stood once the group is restored)
     return seed
@@ -263,8 +254,7 @@ def _take_up(group: Group, saved: GroupCheckpoint, changes: Sequence[Change], be
             raise
         raise misfit(group.directory, e) from None
     for seed in group.seeds:
-        seed.metrics.truncate(seed.state.log_sizes["metrics"])
-        seed.episodes.truncate(seed.state.log_sizes["episodes"])
+        seed.logs.begin(seed.state.log_sizes)
     if changes:
         for seed, change, digest in zip(group.seeds, changes, before, strict=True):
             record(seed.out, seed.recipe, change, digest, seed.state.phase, saved.loop.step)
@@ -494,7 +484,7 @@ class Group:
             state.decisions = {name: int(d[k]) for name, d in decisions.items()}
             while state.next_checkpoint <= loop.step:
                 state.next_checkpoint += interval
-            state.log_sizes = {"metrics": seed.metrics.size(), "episodes": seed.episodes.size()}
+            state.log_sizes = seed.logs.sizes()
         numbers, states = [seed.recipe.train.seed for seed in self.seeds], [seed.state for seed in self.seeds]
         replays = self.journal.record(replays_of(self.learners))  # (the rows stored since the last checkpoint)
         best = self.best.record(numbers, states)  # (the best weights of seeds whose best changed since)
@@ -514,7 +504,7 @@ class Group:
         """Log the episodes that ended in the `ended` rows, and start their counts again."""
         for k in np.flatnonzero(ended):
             row = {"phase": phase, "step": loop.step, "return": loop.returns[k], "length": int(loop.lengths[k])}
-            self.seeds[k].episodes.write(row)
+            self.seeds[k].logs.episodes.write(row)
             self.seeds[k].state.episode += 1
         loop.returns[ended], loop.lengths[ended] = 0.0, 0
 
@@ -558,9 +548,7 @@ class Group:
             row = {"phase": state.phase, "learn": "+".join(phase.learn), "step": step, **result.row(),
                    **mean_losses(state.losses, self.loss_names)}
             state.losses = {name: [] for name in phase.learn}
-            seed.metrics.write(row)
-            if seed.events is not None:
-                seed.events.write(row)
+            seed.logs.evaluation(row)
         returns = np.array([r.return_mean for r in results])
         bar.evaluated(step, float(returns.mean()), float(returns.std()), learned)
 

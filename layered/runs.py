@@ -17,13 +17,12 @@ import torch
 from layered.checkpoint import CheckpointError
 from layered.combiners import COMBINERS
 from layered.errors import Diverged
-from layered.events import EventLog
 from layered.events import available as events_available
 from layered.interrupt import StopRequest
 from layered.learner_set import build_learners, keep_start_weights, precisions, start_from_weights
-from layered.logs import CsvLog
 from layered.recipe import Recipe, RecipeError, load_recipe, resolved
-from layered.results import EPISODE_FIELDS, metrics_fields, write_results
+from layered.results import write_results
+from layered.run_logs import RunLogs
 from layered.learners import Learner
 from layered.orders import phases_of
 from layered.rundir import (
@@ -176,27 +175,21 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
                               "again with --force and the settings in the recipe or on the command line")
         record(out, recipe, change, previous, state.phase, state.step)
     resumed_at = None if state is None else (state.phase, state.step)
-    run = Training(recipe, learners, CsvLog(out / "metrics.csv", metrics_fields(recipe)),
-              CsvLog(out / "episodes.csv", EPISODE_FIELDS), checkpoint, max_steps, progress, StopRequest(), journal,
-              EventLog(out / "tensorboard", resumed_at) if recipe.log.tensorboard else None)
+    run = Training(recipe, learners, RunLogs.open(out, recipe, resumed_at), checkpoint, max_steps, progress,
+                   StopRequest(), journal)
     if state is None:
         state = LoopState()
         keep_start_weights(recipe, learners, checkpoint.parent)
-        run.metrics.start()
-        run.episodes.start()
+        run.logs.begin()
     else:
-        run.metrics.truncate(state.log_sizes["metrics"])
-        run.episodes.truncate(state.log_sizes["episodes"])
+        run.logs.begin(state.log_sizes)
     with run.stop.installed():  # (until the results are written: a signal after the last step lets them finish)
         try:
             train_phases(run, state, out)
         except Diverged as e:
             raise Diverged(f"{e}; {way_on(out, recipe, e.layer, has_progress(out))}", e.layer) from None
         finally:
-            run.metrics.close()
-            run.episodes.close()
-            if run.events is not None:
-                run.events.close()
+            run.logs.close()
         write_results(recipe, state.rows, out, info.label)
     return state.rows
 

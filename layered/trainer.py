@@ -23,14 +23,13 @@ from layered.interrupt import StopRequest, Stopped
 from layered.learners import Learner
 from layered.learners.base import checked_losses
 from layered.errors import Diverged
-from layered.events import EventLog
-from layered.logs import CsvLog
 from layered.metrics import Evaluation, normalised_auc
 from layered.orders import Phase, phases_of
 from layered.progress import Progress
 from layered.recipe import Recipe, resolved
 from layered.replay_journal import ReplayJournal
 from layered.results import mean_losses, write_finished_phases
+from layered.run_logs import RunLogs
 from layered.runstate import LoopState, save_state
 
 FRESH_MEASURES = ("return_mean", "return_std", "repetition", "repetition_at_bounds", "repetition_held", "decisions",
@@ -54,18 +53,16 @@ class Training:
 
     recipe: Recipe
     learners: dict[str, Learner]
-    metrics: CsvLog
-    episodes: CsvLog
+    logs: RunLogs
     checkpoint: Path
     max_steps: int | None
     progress: bool
     stop: StopRequest
     journal: ReplayJournal  # the replay buffers' segments
-    events: EventLog | None = None  # TensorBoard scalars, when the recipe asks for them
 
     def save(self, state: LoopState) -> None:
         """Checkpoint the whole training state, with how much of each log it covers."""
-        state.log_sizes = {"metrics": self.metrics.size(), "episodes": self.episodes.size()}
+        state.log_sizes = self.logs.sizes()
         save_state(self.checkpoint, state, self.learners, resolved(self.recipe), self.max_steps, self.journal)
 
 
@@ -219,7 +216,7 @@ def _start_episode(env: LayeredEnv, state: LoopState, recipe: Recipe) -> None:
 def _end_episode(run: Training, env: LayeredEnv, state: LoopState) -> None:
     """Log a finished episode; at a boundary past the checkpoint interval, or when asked to stop, checkpoint."""
     if not env.agents:  # the episode ran to its end rather than to the budget
-        run.episodes.write({"phase": state.phase, "step": state.step, "return": env.episode_return,
+        run.logs.episodes.write({"phase": state.phase, "step": state.step, "return": env.episode_return,
                             "length": env.episode_steps})
     state.episode += 1
     if state.step >= state.next_checkpoint or run.stop.requested:
@@ -243,9 +240,7 @@ def _evaluate(run: Training, state: LoopState, phase: Phase, evaluator: Stacks, 
         state.best = {name: copy.deepcopy(run.learners[name].state_dict()) for name in phase.learn}
     row = {"phase": state.phase, "learn": "+".join(phase.learn), "step": state.step, **result.row(),
            **mean_losses(state.losses, {name: type(run.learners[name]).loss_names for name in state.losses})}
-    run.metrics.write(row)
-    if run.events is not None:
-        run.events.write(row)
+    run.logs.evaluation(row)
     learned = any(state.losses.values())
     for stats in state.losses.values():
         stats.clear()

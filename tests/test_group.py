@@ -20,6 +20,7 @@ from layered.group_eval import open_stacks
 from layered.interrupt import StopRequest
 from layered.learner_set import build_learners, load_learners
 from layered.logs import CsvLog
+from layered.run_logs import RunLogs
 from layered.best_journal import BestJournal
 from layered.checkpoint_writer import CheckpointWriter
 from layered.replay_journal import ReplayJournal
@@ -36,12 +37,12 @@ TINY = ["train.warmup=40", "eval.every=150", "eval.episodes=1", "eval.fresh_epis
 def tiny_group(recipe, seeds, tmp_path, overrides=()):
     recipes = group_recipes(ROOT / "recipes" / recipe, seeds, [*TINY, *overrides])
     singles = [build_learners(r) for r in recipes]
-    seeds_ = [Seed(r, tmp_path / f"seed{r.train.seed}", CsvLog(tmp_path / f"m{r.train.seed}.csv", metrics_fields(r)),
-                   CsvLog(tmp_path / f"e{r.train.seed}.csv", EPISODE_FIELDS))
+    seeds_ = [Seed(r, tmp_path / f"seed{r.train.seed}",
+                   RunLogs(CsvLog(tmp_path / f"m{r.train.seed}.csv", metrics_fields(r)),
+                           CsvLog(tmp_path / f"e{r.train.seed}.csv", EPISODE_FIELDS)))
               for r in recipes]
     for seed in seeds_:
-        seed.metrics.start()
-        seed.episodes.start()
+        seed.logs.begin()
     group = Group(seeds_, stack_learners(recipes, singles), None, False, tmp_path, [""] * len(recipes), StopRequest(),
                   ReplayJournal(tmp_path / "replay"), BestJournal(tmp_path / "best"), CheckpointWriter())
     return group, recipes, singles

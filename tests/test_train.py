@@ -11,12 +11,11 @@ from conftest import layered_here, stack_recipe
 
 from layered import load_recipe
 from layered.interrupt import StopRequest
-from layered.logs import CsvLog
+from layered.run_logs import RunLogs
 from layered.replay_journal import ReplayJournal
 from layered.runstate import LoopState
 from layered.checkpoint import load_checkpoint
 from layered.learner_set import build_learners
-from layered.results import EPISODE_FIELDS, metrics_fields
 from layered.runs import train
 from layered.orders import phases_of
 from layered.trainer import Training, run_phase
@@ -151,11 +150,9 @@ def first_phase(recipe, out: Path, steps: int):
     """The learners and loop state after the recipe's first phase, run alone for `steps` steps, logging in `out`."""
     out.mkdir()
     learners = build_learners(recipe)
-    logs = [CsvLog(out / f"{name}.csv", fields) for name, fields in
-            (("metrics", metrics_fields(recipe)), ("episodes", EPISODE_FIELDS))]
-    for log in logs:
-        log.start()
-    run = Training(recipe, learners, *logs, out / "run.pt", None, False, StopRequest(), ReplayJournal(out / "replay"))
+    logs = RunLogs.open(out, recipe)
+    logs.begin()
+    run = Training(recipe, learners, logs, out / "run.pt", None, False, StopRequest(), ReplayJournal(out / "replay"))
     state, phase = LoopState(), phases_of(recipe)[0]
     state.start_phase(0, phase.learn, recipe.eval.every, recipe.eval.every)
     run_phase(run, state, phase, steps)
