@@ -67,7 +67,14 @@ from layered.recipe import Recipe, RecipeError, load_recipe, resolved
 from layered.replay_journal import ReplayJournal, replay_folder, replays_of
 from layered.results import mean_losses, write_finished_phases, write_results
 from layered.run_logs import RunLogs
-from layered.rundir import RunDirError, RunInfo, prepare_run_dir, steps_option, writing
+from layered.rundir import (
+    RunDirError,
+    RunInfo,
+    check_same_steps,
+    no_checkpoint_to_change,
+    prepare_run_dir,
+    writing,
+)
 from layered.rules import Rules
 from layered.runs import (
     Change,
@@ -195,8 +202,7 @@ def train_group(recipes: Sequence[Recipe], outs: Sequence[Path], label: str, max
         before = [changed_from(out, changes[k] if changes else None) for k, out in enumerate(outs)] if resume else []
         saved = load_group(directory, numbers, resolved_recipes, max_steps, before) if resume else None
         if saved is None and changes:
-            raise RunDirError(f"{directory}: the group has no checkpoint to continue from with other settings; train "
-                              "it again with --force and the settings in the recipe or on the command line")
+            raise no_checkpoint_to_change(directory, "group")
         if saved is None:
             clear_group(directory)
         else:
@@ -265,9 +271,7 @@ def resume_group(directory: Path, max_steps: int | None = None, progress: bool =
     """Continue the stopped group in `directory` from its last checkpoint, with the recipes it was started with
     or with the `key=value` `settings` changed in every seed (what `layered.runs.resume` lets a run change)."""
     info = group_info(directory)
-    if max_steps is not None and max_steps != info.max_steps:
-        raise RunDirError(f"{directory}: the group was started with {steps_option(info.max_steps)}, not "
-                          f"{steps_option(max_steps)}")
+    check_same_steps(directory, info.max_steps, max_steps, "group")
     outs = seed_dirs(directory, info.group)
     for out, seed in zip(outs, info.group, strict=True):
         if (given := load_recipe(out / "recipe.toml").train.seed) != seed:

@@ -49,6 +49,19 @@ def steps_option(max_steps: int | None) -> str:
     return "no --steps" if max_steps is None else f"--steps {max_steps}"
 
 
+def check_same_steps(where: Path, started: int | None, asked: int | None, what: str = "run") -> None:
+    """Refuse to resume the run (or group) in `where` with another `--steps` than the one it was `started` with
+    (`asked` None: not given, so nothing to check)."""
+    if asked is not None and asked != started:
+        raise RunDirError(f"{where}: the {what} was started with {steps_option(started)}, not {steps_option(asked)}")
+
+
+def no_checkpoint_to_change(where: Path, what: str = "run") -> RunDirError:
+    """The refusal of settings changed on resuming a run (or group) that stopped before its first checkpoint."""
+    return RunDirError(f"{where}: the {what} has no checkpoint to continue from with other settings; train it again "
+                       "with --force and the settings in the recipe or on the command line")
+
+
 def has_progress(run_dir: Path) -> bool:
     """Whether the directory holds a run with something to lose: a checkpoint or results."""
     run_state = run_dir / RUN_CHECKPOINT

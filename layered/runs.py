@@ -30,13 +30,14 @@ from layered.rundir import (
     RunDirError,
     RunInfo,
     check_new_run_dir,
+    check_same_steps,
     clear_run_dir,
     has_progress,
+    no_checkpoint_to_change,
     prepare_run_dir,
     read_run_info,
     record_change,
     refuse_group_seed,
-    steps_option,
     writing,
 )
 from layered.replay_journal import ReplayJournal, replay_folder
@@ -171,8 +172,7 @@ def _train_in(out: Path, recipe: Recipe, learners: dict[str, Learner], info: Run
         raise misfit(out, e) from None
     if change is not None:
         if state is None:
-            raise RunDirError(f"{out}: the run has no checkpoint to continue from with other settings; train it "
-                              "again with --force and the settings in the recipe or on the command line")
+            raise no_checkpoint_to_change(out)
         record(out, recipe, change, previous, state.phase, state.step)
     resumed_at = None if state is None else (state.phase, state.step)
     run = Training(recipe, learners, RunLogs.open(out, recipe, resumed_at), checkpoint, max_steps, progress,
@@ -220,9 +220,7 @@ def resume(run_dir: str | Path, max_steps: int | None = None, progress: bool = T
     if info.group:
         raise RunDirError(f"{run_dir}: the run trains in a group of seeds {list(info.group)}; continue the group "
                           f"with `layered resume {run_dir.parent}`")
-    if max_steps is not None and max_steps != info.max_steps:
-        raise RunDirError(f"{run_dir}: the run was started with {steps_option(info.max_steps)}, not "
-                          f"{steps_option(max_steps)}")
+    check_same_steps(run_dir, info.max_steps, max_steps)
     recipe, change = changed_recipe(run_dir, settings) if settings else (load_recipe(run_dir / "recipe.toml"), None)
     if change is not None and (inert := [d.split(":")[0] for d in change.differences
                                          if d.split(":")[0] in GROUP_ONLY]):
