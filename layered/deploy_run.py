@@ -14,7 +14,7 @@ import numpy as np
 from layered.agents import make_aec_env
 from layered.deploy import Driver, Settings, Stop
 from layered.deploy_measures import largest_difference, layer_measures, run_measures
-from layered.envs import control_timestep, make_env
+from layered.envs import control_timestep, env_info, make_env
 from layered.evaluate import episode_seeds, run_episode
 from layered.export import export_stack
 from layered.latency import TOLERANCE
@@ -25,6 +25,7 @@ from layered.rules import Rules
 from layered.run_evals import TrainedRun
 
 START_TIMEOUT_S = 120.0  # a layer's process imports torch and loads its policy
+LONG_S = 60.0  # a setting whose episodes would take longer against the clock says so before it starts
 
 
 def library_episodes(run: TrainedRun, episodes: int, threshold: float | None) -> list[tuple[float, np.ndarray]]:
@@ -94,6 +95,7 @@ def _deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: P
     reference = library_episodes(run, episodes, threshold)
     tolerance = TOLERANCE * float(np.max(rules.high - rules.low))
     env = make_env(run.recipe.env.id)
+    steps = env_info(run.recipe.env.id).episode_steps
     how = {"run": str(run.path.resolve()), "weights": run.weights or run.recipe.train.select, "threshold": threshold,
            "transport": transport, "episodes_asked": episodes}
     rows = []
@@ -101,10 +103,15 @@ def _deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: P
         for k, setting in enumerate(settings):
             processes = start_layers(rules, directory, setting, run.seed, transport)
             driver = Driver(rules, processes, timestep, setting, notify)
+            if not setting.lockstep and steps and (longest := episodes * steps * timestep / setting.speed) > LONG_S:
+                notify(f"{setting.label}: {episodes} episode{'s' * (episodes > 1)} of up to {steps} steps at "
+                       f"{timestep / setting.speed:.3g} s a step take up to {longest / 60:.1f} minutes")
             played, stopped = [], False
             try:
-                for seed in episode_seeds(run.seed, episodes):
+                for n, seed in enumerate(episode_seeds(run.seed, episodes), start=1):
                     played.append(driver.play(env, seed))
+                    if n < episodes:
+                        notify(f"{setting.label}: episode {n} of {episodes}: return {played[-1].ret:.1f}")
             except Stop:
                 stopped = True
             finally:

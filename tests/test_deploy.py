@@ -301,7 +301,8 @@ def test_a_layer_that_dies_is_reported_and_the_stack_goes_on_without_it(tmp_path
     lines = []
     [row] = deploy(run, [Settings(lockstep=True, faults={"fast": Fault("die", 30)})], episodes=2,
                    out=tmp_path / "deploy", notify=lines.append)
-    assert len(lines) == 2 and "layer 'fast'" in lines[0] and "died" in lines[0] and "going on" in lines[0]
+    assert len(lines) == 3 and "layer 'fast'" in lines[0] and "died" in lines[0] and "going on" in lines[0]
+    assert lines[1].startswith("lockstep: episode 1 of 2: return ")  # (progress; the last episode's is the row's)
     assert row["episodes"] == 2 and len(row["faults"]) == 1 and not row["completed"]
     assert row["layers"]["fast"]["requests"] == 30
     assert not any(_alive(pid) for pid in row["pids"])
@@ -487,3 +488,12 @@ def test_layers_as_ray_actors_act_as_processes_do_and_a_dead_actor_is_a_fault(tm
     assert rows[0]["same_actions_as_eval"] and not rows[0]["faults"]
     assert len(rows[1]["faults"]) == 1 and "layer 'mid'" in rows[1]["faults"][0] and "died" in rows[1]["faults"][0]
     assert rows[1]["layers"]["mid"]["requests"] == 10
+
+
+def test_a_setting_that_would_take_long_against_the_clock_says_so_before_it_starts(tmp_path):
+    """At 1/20 of real time Pendulum's two episodes of 200 steps of 0.05 s take up to 400 s; cut short by a fault."""
+    run = untrained("pendulum/tla-c.toml", [], tmp_path)
+    lines = []
+    deploy(run, [Settings(speed=0.05, faults={"fast": Fault("die", 2)}, on_fault="stop")], episodes=2,
+           out=tmp_path / "deploy", notify=lines.append)
+    assert lines[0] == "0.05x: 2 episodes of up to 200 steps at 1 s a step take up to 6.7 minutes"
