@@ -19,7 +19,7 @@ import tomllib
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -91,8 +91,7 @@ def plan(recipes: Sequence[str | Path], seeds: int, out: Path, overrides: Sequen
                     folder = folder / f"seeds{first}-{min(first + group_size, seeds) - 1}"
                 label = " ".join([labels[path], *named])
                 job = Job(resolved(recipe), folder / f"seed{seed}", label, max_steps, tuple(plugins))
-                _check_same_run(job)
-                jobs.append(job)
+                jobs.append(_same_run(job))
     return jobs
 
 
@@ -109,20 +108,31 @@ def recipe_labels(paths: Sequence[Path]) -> dict[Path, str]:
             depth[path] += 1
 
 
-def _check_same_run(job: Job) -> None:
-    """A run directory from an earlier sweep must hold the same recipe and `--steps`, or resuming (or
-    skipping it as finished) would mix two experiments."""
+def _same_run(job: Job) -> Job:
+    """The job, checked against the run directory an earlier sweep left: it must hold the same recipe and `--steps`,
+    or resuming (or skipping it as finished) would mix two experiments. A run whose settings `layered resume --set`
+    changed holds the sweep's recipe with those changes: the job goes on with them."""
     existing = job.out / "recipe.toml"
     if existing.exists() and (saved := tomllib.loads(existing.read_text())) != (
             wanted := tomllib.loads(tomli_w.dumps(job.recipe))):
+        settings = [s for change in read_run_info(job.out).changes for s in change.get("set", ())] \
+            if (job.out / "run.json").exists() else []
+        if settings and tomllib.loads(tomli_w.dumps(resolved(load_recipe(job.recipe, settings)))) == saved:
+            return _checked_steps(replace(job, recipe=saved))
         differences = recipe_differences(saved, wanted)
         named = "; ".join(differences[:3]) + (f" and {len(differences) - 3} more" if len(differences) > 3 else "")
         raise RecipeError(str(existing), [(None, f"this run directory holds a different recipe ({named}); use "
                                                  "another --out")])
+    return _checked_steps(job)
+
+
+def _checked_steps(job: Job) -> Job:
+    """The job, unless its run directory's run was made with another `--steps`."""
     if (job.out / "run.json").exists() and (made := read_run_info(job.out).max_steps) != job.max_steps:
         raise RecipeError(str(job.out / "run.json"), [(None, f"this run was made with {steps_option(made)}, not "
                                                        f"{steps_option(job.max_steps)}; use another --out, or the "
                                                        "same --steps")])
+    return job
 
 
 _STOP: Any = None  # in a worker: the sweep's event, set once it is asked to stop (no new run starts)

@@ -1,15 +1,18 @@
 """Sweeps: every (recipe, seed) pair runs once in its own directory; finished runs are skipped."""
 
+import json
 import multiprocessing
 import os
 import signal
 import subprocess
 import sys
 import time
+import tomllib
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
+import tomli_w
 from conftest import layered_here
 
 from layered.cores import usable_cores
@@ -307,3 +310,23 @@ def test_a_sweep_whose_worker_is_killed_says_so_in_a_line_per_run_and_the_same_c
     finally:
         del os.environ["SPARED"]
     assert again.returncode == 0 and "1 of 1 runs finished" in again.stdout, again.stderr
+
+
+def test_a_run_whose_settings_resume_changed_is_the_sweeps_with_those_changes(tmp_path):
+    """After `layered resume RUN --set` on one of a sweep's runs (recorded in its run.json), the same sweep takes
+    the run as its own, with its changed settings; a recipe changed otherwise is still refused."""
+    from layered.recipe import RecipeError, load_recipe, resolved
+    from layered.rundir import record_change
+
+    out = tmp_path / "sw"
+    jobs = plan([PENDULUM / "td3.toml"], 1, out, TINY, 100)
+    run = jobs[0].out
+    run.mkdir(parents=True)
+    (run / "run.json").write_text(json.dumps({"label": "x", "max_steps": 100, "plugins": [], "group": []}))
+    changed = resolved(load_recipe(jobs[0].recipe, ["layers.fast.learner.lr=1e-4"]))
+    record_change(run, tomli_w.dumps(changed), {"phase": 0, "step": 50, "set": ["layers.fast.learner.lr=1e-4"]})
+    [job] = plan([PENDULUM / "td3.toml"], 1, out, TINY, 100)
+    assert job.recipe["layers"][0]["learner"]["lr"] == 1e-4 and job.recipe == tomllib.loads(tomli_w.dumps(changed))
+    (run / "recipe.toml").write_text(tomli_w.dumps(resolved(load_recipe(jobs[0].recipe, ["learner.lr=1e-3"]))))
+    with pytest.raises(RecipeError, match="holds a different recipe"):
+        plan([PENDULUM / "td3.toml"], 1, out, TINY, 100)
