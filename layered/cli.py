@@ -23,6 +23,7 @@ from layered.errors import BadInput, Diverged
 from layered.interrupt import Stopped
 from layered.layer_process import Fault, LayerFault, Link
 from layered.plugins import load_plugins
+from layered.progress import count
 from layered.report import DEFAULT_SWEEP, plot_episode, results_table
 
 if TYPE_CHECKING:
@@ -458,7 +459,7 @@ def _eval(args: argparse.Namespace) -> int:
         return _fail(f"--gallery: no layer {args.gallery!r} in this stack; layers: {', '.join(run.active)}")
     episodes = args.episodes or run.episodes
     if args.threshold_sweep:
-        _print_sweep(threshold_sweep(run, args.threshold_sweep, episodes), run)
+        _print_sweep(*threshold_sweep(run, args.threshold_sweep, episodes), run)
     if args.threshold is not None or args.plot or not (args.threshold_sweep or args.video):
         _evaluate_once(args, run, episodes)
     if args.video:
@@ -555,18 +556,26 @@ def _plot_last_episode(args: argparse.Namespace, run: Any, episodes: int, png: P
 
     env = make_aec_env(run.recipe, active=run.active, evaluation=True, threshold=args.threshold, keep_trace=True)
     try:
-        run_episode(env, run.learners, episode_seeds(run.seed, episodes)[-1])
-        plot_episode(env.trace, env.possible_agents, png, f"{run.recipe.env.id}: last evaluation episode")
+        measures = run_episode(env, run.learners, episode_seeds(run.seed, episodes)[-1])
+        at = "the recipe's threshold" if args.threshold is None else f"threshold {args.threshold:g}"
+        plot_episode(env.trace, env.possible_agents, png, f"{_run_title(run)}: episode {episodes - 1} (the last of "
+                     f"{episodes}), return {measures.ret:.1f}, {at}")
     finally:
         env.close()
 
 
-def _print_sweep(rows: list[dict[str, Any]], run: Any) -> None:
-    from layered.report import plot_threshold_sweep
-    from layered.run_evals import sweep_file
+def _run_title(run: Any) -> str:
+    """What a run's figures name it by: its environment, label and seed."""
+    from layered.rundir import read_run_info
 
-    written = run.eval_dir / sweep_file([r["threshold"] for r in rows])
-    plot_threshold_sweep(rows, written.with_suffix(".png"), f"{run.recipe.env.id}: threshold sweep")
+    return f"{run.recipe.env.id}, {read_run_info(run.path).label} seed {run.recipe.train.seed}"
+
+
+def _print_sweep(rows: list[dict[str, Any]], written: Path, run: Any) -> None:
+    from layered.report import plot_threshold_sweep
+
+    plot_threshold_sweep(rows, written.with_suffix(".png"), f"{_run_title(run)}: threshold sweep "
+                         f"({count(rows[0]['episodes'], 'episode')} at each threshold)")
     print("| threshold | return | action repetition | decisions |\n|---|---|---|---|")
     for r in rows:
         print(f"| {r['threshold']:g} | {r['return_mean']:.1f} ± {r['return_std']:.1f} | {r['repetition']:.1%} "

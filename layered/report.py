@@ -22,7 +22,29 @@ if TYPE_CHECKING:
 
 DEFAULT_SWEEP = [round(0.1 * k, 1) for k in range(11)]  # the thresholds of the paper's Fig. 2
 SWEEP_FILE = "threshold-sweep.csv"
-"""A run's threshold sweep on `DEFAULT_SWEEP`, in its eval/ folder: the one Fig. 2 is drawn from."""
+"""A run's threshold sweep on `DEFAULT_SWEEP` and its `eval.episodes`, in its eval/ folder: the one Fig. 2 is drawn
+from."""
+
+
+def kept_thresholds(path: Path) -> list[float]:
+    """The thresholds of the sweep kept in `path`, in its order."""
+    with path.open(newline="") as f:
+        return [float(row["threshold"]) for row in csv.DictReader(f)]
+
+
+def kept_episodes(path: Path) -> int | None:
+    """The episodes per threshold of the sweep kept in `path`; None for one kept before they were recorded."""
+    with path.open(newline="") as f:
+        counts = {row.get("episodes") or "" for row in csv.DictReader(f)}
+    return int(counts.pop()) if len(counts) == 1 and "" not in counts else None
+
+
+def figure_sweep(path: Path, episodes: int | None) -> bool:
+    """Whether the sweep kept in `path` is the one Fig. 2 is drawn from: the default grid, on `episodes` episodes (the
+    run's `eval.episodes`) each."""
+    return path.exists() and kept_thresholds(path) == DEFAULT_SWEEP and kept_episodes(path) == episodes
+
+
 LEGEND_WIDTH = 44
 """Characters per line of a setup's name in a figure's legend, which wraps longer names (settings, paths) so that
 the legend stays within its plot."""
@@ -370,12 +392,18 @@ def _slug(setup: Setup) -> str:
     return re.sub(r"[^\w.-]+", "-", f"{setup.env}-{setup.method}").strip("-")
 
 
+def _eval_episodes(run: Run) -> int | None:
+    """The episodes of a run's evaluations (its resolved recipe's `eval.episodes`; None where it does not say)."""
+    episodes = dict(run.setting).get("eval.episodes")
+    return None if episodes is None else int(episodes)
+
+
 def _threshold_and_gallery_figures(setups: Sequence[Setup], out: Path) -> list[str]:
     """Fig. 2 per setup from its runs' `layered eval --threshold-sweep` (mean over seeds), and the
     first gallery of states where a layer acts (`layered eval --gallery`)."""
     parts: list[str] = []
     for s in setups:
-        sweeps = [p for r in s.runs if (p := r.path / "eval" / SWEEP_FILE).exists()]
+        sweeps = [p for r in s.runs if figure_sweep(p := r.path / "eval" / SWEEP_FILE, _eval_episodes(r))]
         if sweeps:
             per_run = []
             for path in sweeps:
@@ -392,7 +420,9 @@ def _threshold_and_gallery_figures(setups: Sequence[Setup], out: Path) -> list[s
                 "repetition": np.mean([float(p[t]["repetition"]) for p in per_run]),
             } for t in common]
             name = f"threshold-{_slug(s)}.png"
-            plot_threshold_sweep(rows, out / name, f"{s.env} {s.method}: threshold ({count(len(sweeps), 'seed')})")
+            each = "" if (episodes := _eval_episodes(s.runs[0])) is None else f", {count(episodes, 'episode')} each"
+            plot_threshold_sweep(rows, out / name,
+                                 f"{s.env} {s.method}: threshold ({count(len(sweeps), 'seed')}{each})")
             with (out / name).with_suffix(".csv").open("w", newline="") as f:  # (the figure's points)
                 writer = csv.DictWriter(f, fieldnames=list(rows[0]))
                 writer.writeheader()

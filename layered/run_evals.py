@@ -16,23 +16,18 @@ from layered.learners import Learner
 from layered.metrics import Evaluation
 from layered.plugins import load_plugins
 from layered.recipe import Recipe, load_recipe
-from layered.report import DEFAULT_SWEEP, SWEEP_FILE
+from layered.report import DEFAULT_SWEEP, SWEEP_FILE, figure_sweep, kept_episodes, kept_thresholds
 from layered.stack import has_threshold
 from layered.standing import Standing, standing
 
 
-def sweep_file(thresholds: list[float]) -> str:
-    """Where a threshold sweep is kept in a run's eval/ folder: `SWEEP_FILE` for the default grid, and a name of its
-    own for any other (`threshold-sweep-0-0.3.csv`), so that a sweep of a few thresholds never stands in for it."""
-    if thresholds == DEFAULT_SWEEP:
-        return SWEEP_FILE
-    return "threshold-sweep-" + "-".join(f"{t:g}" for t in thresholds) + ".csv"
-
-
-def kept_thresholds(path: Path) -> list[float]:
-    """The thresholds of the sweep kept in `path`, in its order."""
-    with path.open(newline="") as f:
-        return [float(row["threshold"]) for row in csv.DictReader(f)]
+def sweep_file(thresholds: list[float], episodes: int | None = None) -> str:
+    """Where a threshold sweep is kept in a run's eval/ folder: `SWEEP_FILE` for the default grid on the run's own
+    number of evaluation episodes (`episodes` None), and a name of its own for any other (`threshold-sweep-0-0.3.csv`,
+    `threshold-sweep-episodes-1.csv`), so that no other sweep stands in for the one Fig. 2 is drawn from."""
+    parts = ([] if thresholds == DEFAULT_SWEEP else [f"{t:g}" for t in thresholds]) + \
+        ([] if episodes is None else [f"episodes-{episodes}"])
+    return "-".join(["threshold-sweep", *parts]) + ".csv"
 
 
 @dataclass(frozen=True)
@@ -205,9 +200,11 @@ def eval_run(run_dir: str | Path, episodes: int | None = None, weights: str | No
         return evaluate_trained(run, episodes, threshold)
 
 
-def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None) -> list[dict[str, Any]]:
+def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | None = None
+                    ) -> tuple[list[dict[str, Any]], Path]:
     """One evaluation per threshold (a fraction of the maximum action), its episodes side by side: the paper's
-    return and action frequency against the threshold (Fig. 2). Writes eval/`sweep_file(thresholds)`; its rows."""
+    return and action frequency against the threshold (Fig. 2). Writes eval/`sweep_file(...)`; its rows, and that
+    file."""
     from tqdm import tqdm
 
     from layered.group_eval import evaluate_run, open_run_envs, stacks_over
@@ -218,14 +215,16 @@ def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | No
     try:
         for threshold in tqdm(thresholds, desc="threshold sweep", unit="threshold"):
             at = stacks_over(run.recipe, run.active, envs, evaluation=True, threshold=threshold)
-            rows.append({"threshold": threshold, **evaluate_run(at, run.learners, episodes, run.seed).row()})
+            rows.append({"threshold": threshold, "episodes": episodes,
+                         **evaluate_run(at, run.learners, episodes, run.seed).row()})
     finally:
         envs.close()
-    with (run.eval_dir / sweep_file(thresholds)).open("w", newline="") as f:
+    path = run.eval_dir / sweep_file(thresholds, None if episodes == run.recipe.eval.episodes else episodes)
+    with path.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    return rows
+    return rows, path
 
 
 def gallery(run: TrainedRun, layer: str, episodes: int | None = None, threshold: float | None = None
@@ -251,9 +250,8 @@ def missing_figure_evals(run_dir: Path) -> list[str]:
     load_run_plugins(run_dir)  # (its recipe may name what they register)
     recipe = load_recipe(run_dir / "recipe.toml")
     missing = []
-    kept = run_dir / "eval" / SWEEP_FILE
-    if has_threshold(recipe, phases_of(recipe)[-1].active) and not (kept.exists() and
-                                                                    kept_thresholds(kept) == DEFAULT_SWEEP):
+    if has_threshold(recipe, phases_of(recipe)[-1].active) and not figure_sweep(run_dir / "eval" / SWEEP_FILE,
+                                                                                  recipe.eval.episodes):
         missing.append("threshold sweep")
     if len(recipe.layers) > 1 and not (run_dir / "eval" / f"gallery-{recipe.layers[-1].name}.png").exists():
         missing.append("gallery")
@@ -265,11 +263,14 @@ def run_figure_evals(run_dir: Path, missing: list[str]) -> None:
     run = open_run(run_dir)
     if "threshold sweep" in missing:
         kept = run.eval_dir / SWEEP_FILE
-        if kept.exists():  # other thresholds, kept there before they had a name of their own: moved to it
-            renamed = run.eval_dir / sweep_file(kept_thresholds(kept))
-            kept.rename(renamed)
-            if kept.with_suffix(".png").exists():
-                kept.with_suffix(".png").rename(renamed.with_suffix(".png"))
+        if kept.exists():  # another sweep, kept there before it had a name of its own: moved to it (one of unknown
+            episodes = kept_episodes(kept)  # episodes over the default grid is evaluated again in its place)
+            episodes = None if episodes == run.recipe.eval.episodes else episodes
+            renamed = run.eval_dir / sweep_file(kept_thresholds(kept), episodes)
+            if renamed != kept:
+                kept.rename(renamed)
+                if kept.with_suffix(".png").exists():
+                    kept.with_suffix(".png").rename(renamed.with_suffix(".png"))
         threshold_sweep(run, DEFAULT_SWEEP)
     if "gallery" in missing:
         gallery(run, run.active[-1])

@@ -509,3 +509,26 @@ def test_the_repetitions_at_the_bounds_and_held_show_beside_the_repetition_and_a
             for seed, final in enumerate(finals)]
     text = write_report(group(runs), tmp_path)
     assert "| Pendulum-v1 | 50.0% ± 0.0% | 25.0% ± 12.5% | 37.5% ± 12.5% | 200.0 ± 0.0 |" in text.split("## Table 2")[1]
+
+
+def test_a_sweep_of_the_default_grid_on_other_episodes_never_stands_in_for_fig_2(tmp_path):
+    """`eval --threshold-sweep --episodes 1` on a run that evaluates on 2 keeps a name of its own, and a sweep of the
+    default grid kept without its episodes (as `layered eval` wrote it before) is evaluated again for the report."""
+    recipe = load_recipe(PENDULUM / "tla-c.toml", [*TINY, "eval.episodes=2"])
+    train(recipe, tmp_path / "run", max_steps=200, progress=False)
+    eval_dir = tmp_path / "run" / "eval"
+    assert main(["eval", str(tmp_path / "run"), "--episodes", "1", "--threshold-sweep"]) == 0
+    assert sorted(p.name for p in eval_dir.iterdir()) == ["threshold-sweep-episodes-1.csv",
+                                                          "threshold-sweep-episodes-1.png"]
+    assert "threshold sweep" in missing_figure_evals(tmp_path / "run")
+    with (eval_dir / "threshold-sweep-episodes-1.csv").open() as f:  # as kept before episodes were recorded
+        rows = [{k: v for k, v in row.items() if k != "episodes"} for row in csv.DictReader(f)]
+    with (eval_dir / "threshold-sweep.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    assert "threshold sweep" in missing_figure_evals(tmp_path / "run")
+    run_figure_evals(tmp_path / "run", ["threshold sweep"])
+    with (eval_dir / "threshold-sweep.csv").open() as f:
+        assert {row["episodes"] for row in csv.DictReader(f)} == {"2"}
+    assert missing_figure_evals(tmp_path / "run") == ["gallery"]

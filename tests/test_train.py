@@ -133,8 +133,9 @@ def test_cli_train_then_eval_with_threshold(tmp_path):
 
     proc = layered_cli("eval", out, "--episodes", 1, "--threshold-sweep", "0,0.5", "--gallery")
     assert proc.returncode == 0, proc.stderr
-    assert (out / "eval" / "threshold-sweep-0-0.5.csv").read_text().count("\n") == 3  # header and two thresholds
-    assert (out / "eval" / "threshold-sweep-0-0.5.png").stat().st_size > 0
+    # (on 1 episode, where the recipe evaluates on more: a name of its own, which says so)
+    assert (out / "eval" / "threshold-sweep-0-0.5-episodes-1.csv").read_text().count("\n") == 3  # two thresholds
+    assert (out / "eval" / "threshold-sweep-0-0.5-episodes-1.png").stat().st_size > 0
     assert (out / "eval" / "gallery-fast.png").stat().st_size > 0
     assert layered_here("eval", out, "--gallery", "medium").returncode == 2
 
