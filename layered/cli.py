@@ -559,7 +559,7 @@ def _plot_last_episode(args: argparse.Namespace, run: Any, episodes: int, png: P
         measures = run_episode(env, run.learners, episode_seeds(run.seed, episodes)[-1])
         at = "the recipe's threshold" if args.threshold is None else f"threshold {args.threshold:g}"
         plot_episode(env.trace, env.possible_agents, png, f"{_run_title(run)}: episode {episodes - 1} (the last of "
-                     f"{episodes}), return {measures.ret:.1f}, {at}")
+                     f"{episodes}), return {measures.ret:.1f}, {at}", (env.stack.low, env.stack.high))
     finally:
         env.close()
 
@@ -574,8 +574,11 @@ def _run_title(run: Any) -> str:
 def _print_sweep(rows: list[dict[str, Any]], written: Path, run: Any) -> None:
     from layered.report import plot_threshold_sweep
 
+    from layered.stack import has_threshold
+
+    none = "" if has_threshold(run.recipe, run.active) else "; no threshold applies to this stack: the lines are flat"
     plot_threshold_sweep(rows, written.with_suffix(".png"), f"{_run_title(run)}: threshold sweep "
-                         f"({count(rows[0]['episodes'], 'episode')} at each threshold)")
+                         f"({count(rows[0]['episodes'], 'episode')} at each threshold{none})")
     print("| threshold | return | action repetition | decisions |\n|---|---|---|---|")
     for r in rows:
         print(f"| {r['threshold']:g} | {r['return_mean']:.1f} ± {r['return_std']:.1f} | {r['repetition']:.1%} "

@@ -112,11 +112,17 @@ def pyplot() -> Any:
 
 
 def _steps_axis(ax: Any, label: str) -> None:
-    """Label an axis of environment steps, with ticks as 50k, 1M so that long runs stay legible."""
-    from matplotlib.ticker import EngFormatter
+    """Label an axis of environment steps, every tick in the unit of the axis's end (0.5k ... 2k; 250k ... 1M) so
+    that long runs stay legible."""
+    from matplotlib.ticker import FuncFormatter
+
+    def steps(x: float, _: int) -> str:
+        end = max(abs(v) for v in ax.get_xlim())
+        scale, unit = (1e6, "M") if end >= 1e6 else (1e3, "k") if end >= 1e3 else (1.0, "")
+        return f"{x / scale:g}{unit}" if x else "0"
 
     ax.set_xlabel(label)
-    ax.xaxis.set_major_formatter(EngFormatter(sep=""))
+    ax.xaxis.set_major_formatter(FuncFormatter(steps))
 
 
 def band(mean: Any, std: Any, lowest: Any = None, highest: Any = None) -> tuple[np.ndarray, np.ndarray]:
@@ -149,7 +155,8 @@ def plot_curves(metrics_csv: Path, out_png: Path, title: str) -> None:
     ax.set_ylabel("evaluation return")
     ax.set_title(textwrap.fill(title, TITLE_WIDTH))
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.18), frameon=False,
+              ncols=min(3, len(ax.get_lines())))  # (below the axes, off the bands)
     fig.savefig(out_png, dpi=120)
     plt.close(fig)
 
@@ -161,9 +168,10 @@ def _extremes(rows: Sequence[dict[str, Any]]) -> tuple[list[float] | None, list[
     return [float(r["return_min"]) for r in rows], [float(r["return_max"]) for r in rows]
 
 
-def plot_episode(trace: Sequence[Any], layers: Sequence[str], out_png: Path, title: str) -> None:
-    """One episode: above, when each layer decided (ticks) and contributed a non-zero part of the
-    action (squares); below, the executed action per dimension."""
+def plot_episode(trace: Sequence[Any], layers: Sequence[str], out_png: Path, title: str,
+                 bounds: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """One episode: above, when each layer decided (ticks) and changed the action, contributing a non-zero part of
+    it (squares); below, the executed action per dimension, on the action's `bounds` where given."""
     plt = pyplot()
     steps = range(len(trace))
     fig, (top, bottom) = plt.subplots(
@@ -174,18 +182,21 @@ def plot_episode(trace: Sequence[Any], layers: Sequence[str], out_png: Path, tit
         decided = [t for t in steps if name in trace[t].decided]
         acted = [t for t in steps if name in trace[t].acted]
         top.scatter(decided, [row] * len(decided), marker="|", s=60, color="0.6", label="decided" if row == 0 else None)
-        top.scatter(acted, [row + 0.25] * len(acted), marker="s", s=6, color=f"C{row}",
-                    label="contributed" if row == 0 else None)
+        top.scatter(acted, [row + 0.25] * len(acted), marker="s", s=6, color=f"C{row}")
+    top.scatter([], [], marker="s", s=6, color="0.2", label="changed the action")  # (the key, in no layer's colour)
     top.set_yticks(range(len(layers)), layers)
     top.set_ylim(-0.6, len(layers) - 0.2)
     top.invert_yaxis()
-    top.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize="small", ncols=2, frameon=False)
-    top.set_title(title, loc="left")
+    top.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize="small", frameon=False)  # (clear of the title)
+    top.set_title(textwrap.fill(title, 2 * TITLE_WIDTH), loc="left")
     actions = [record.action for record in trace]
     for d in range(len(actions[0]) if actions else 0):
         bottom.step(list(steps), [a[d] for a in actions], where="post", lw=1, label=f"action[{d}]")
     bottom.set_xlabel("base step")
     bottom.set_ylabel("executed action")
+    if bounds is not None:
+        low, high = float(np.min(bounds[0])), float(np.max(bounds[1]))
+        bottom.set_ylim(low - 0.05 * (high - low), high + 0.05 * (high - low))
     bottom.grid(alpha=0.3)
     if actions and len(actions[0]) <= 8:
         bottom.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize="small", frameon=False)  # (off the lines)
@@ -370,16 +381,20 @@ def plot_setup_curves(setups: Sequence[Setup], out_png: Path) -> None:
                 ax.text(0.5, 0.5, f"{env}:\nevery setup trains in one phase,\nso its whole run is the curve above",
                         ha="center", va="center", transform=ax.transAxes, fontsize="small")
                 continue
+            starts: dict[tuple[int, int], list[str]] = {}  # (phase, step) -> the setups whose phase starts there
             for s in (s for s in setups if s.env == env):
                 steps, mean, std, lowest, highest = s.curve(whole_run)
                 label = textwrap.fill(f"{s.method} ({count(len(s.runs), 'seed')})", LEGEND_WIDTH)
                 line, = ax.plot(steps, mean, label=label)
                 ax.fill_between(steps, *band(mean, std, lowest, highest), color=line.get_color(), alpha=0.2)
                 for phase, start in enumerate(s.runs[0].phase_starts if whole_run else (), start=1):
-                    ax.axvline(start, color=line.get_color(), ls=":", lw=1)
-                    ax.annotate(f"phase {phase}", (start, 1), xycoords=("data", "axes fraction"), xytext=(2, -2),
-                                textcoords="offset points", va="top", fontsize="x-small", color=line.get_color())
-            ax.set_title(env)
+                    starts.setdefault((phase, start), []).append(s.method)
+            for (phase, start), methods in starts.items():  # one marker per start, naming every setup it is of
+                ax.axvline(start, color="0.4", ls=":", lw=1)
+                ax.annotate(textwrap.fill(f"phase {phase}: {', '.join(methods)}", 24), (start, 1),
+                            xycoords=("data", "axes fraction"), xytext=(2, -2), textcoords="offset points", va="top",
+                            fontsize="x-small", color="0.3")
+            ax.set_title(f"{env}: {'whole run' if whole_run else 'last phase'}")
             _steps_axis(ax, xlabel)
             ax.set_ylabel("evaluation return")
             ax.grid(alpha=0.3)
@@ -565,18 +580,20 @@ def _content(frames: np.ndarray, margin: int = 10) -> tuple[slice, slice]:
 
 
 def save_gallery(shots: Sequence[tuple[int, int, Any, Any]], layer: str, out_png: Path, title: str) -> None:
-    """The rendered states in one row, each titled with its episode and step, the layer's part of the action and the
-    executed action."""
+    """The rendered states, four to a row (legible where a page shrinks the figure), each titled with its episode and
+    step, the layer's part of the action and the executed action."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, max(1, len(shots)), figsize=(2.2 * max(1, len(shots)), 3.2), squeeze=False,
+    across = min(4, max(1, len(shots)))
+    down = -(-max(1, len(shots)) // across)
+    fig, axes = plt.subplots(down, across, figsize=(2.8 * across, 3.3 * down + 0.4), squeeze=False,
                              layout="constrained")  # keeps the title clear of the frames' own titles
-    for ax in axes[0]:
+    for ax in axes.flat:
         ax.axis("off")
     rows, cols = _content(np.asarray([frame for _, _, frame, _ in shots])) if shots else (slice(None), slice(None))
-    for ax, (episode, step, frame, record) in zip(axes[0], shots, strict=False):
+    for ax, (episode, step, frame, record) in zip(axes.flat, shots, strict=False):
         ax.imshow(frame[rows, cols])
         ax.set_title(f"episode {episode}, step {step}\n{layer}: {_signed(record.contributions[layer])}\n"
-                     f"action: {_signed(record.action)}", fontsize="x-small")
-    fig.suptitle(title if shots else f"{title}: the layer never acted", fontsize="medium")
+                     f"action: {_signed(record.action)}", fontsize="small")
+    fig.suptitle(textwrap.fill(title if shots else f"{title}: the layer never acted", 30 * across), fontsize="medium")
     fig.savefig(out_png, dpi=100, bbox_inches="tight")
     plt.close(fig)

@@ -234,11 +234,14 @@ def gallery(run: TrainedRun, layer: str, episodes: int | None = None, threshold:
     states shown."""
     from layered.evaluate import states_where_layer_acts
     from layered.report import save_gallery
+    from layered.rundir import read_run_info
 
     acted, steps, shots = states_where_layer_acts(run.recipe, run.learners, run.active, layer, run.seed,
                                                   episodes or run.episodes, threshold)
     png = run.eval_dir / f"gallery-{layer}.png"
-    save_gallery(shots, layer, png, f"{run.recipe.env.id}: states where layer {layer!r} acts")
+    label = read_run_info(run.path).label
+    save_gallery(shots, layer, png, f"{run.recipe.env.id}, {label} seed {run.recipe.train.seed}: {len(shots)} of the "
+                 f"{acted} steps (of {steps}) where layer {layer!r} changed the action, the most different")
     return png, acted, steps, len(shots)
 
 

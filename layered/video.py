@@ -17,6 +17,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from layered.agents import make_aec_env
+from layered.envs import control_timestep
 from layered.evaluate import episode_seeds, run_episode
 from layered.learners import Learner
 from layered.metrics import StepRecord
@@ -91,7 +92,7 @@ class StripVideo:
             right -= draw.textlength(text, font=self.font)
             draw.text((right, 3), text, fill=INK, font=self.font)
             if mark == "block":
-                draw.rectangle((right - 12, 7, right - 4, 14), fill=COLOURS[0])
+                draw.rectangle((right - 12, 7, right - 4, 14), fill=INK)  # (the key, in no layer's colour)
             elif mark == "tick":
                 draw.line((right - 6, 4, right - 6, 14), fill=GREY, width=1)
             right -= 22
@@ -123,7 +124,8 @@ def write_videos(recipe: Recipe, learners: Mapping[str, Learner], active: list[s
         env.close()
         raise ValueError(f"{recipe.env.id} renders no rgb_array frames, so no video can be made of it")
     low, high = env.stack.low, env.stack.high
-    fps = int(env.base.metadata.get("render_fps") or 30)
+    timestep = control_timestep(recipe.env.id)  # (in real time where the environment's step has a duration)
+    fps = round(1 / timestep) if timestep else int(env.base.metadata.get("render_fps") or 30)
     written = []
     for k, episode_seed in enumerate(episode_seeds(seed, episodes)):
         name = f"episode-{k}.mp4" if threshold is None else f"threshold-{threshold}-episode-{k}.mp4"

@@ -198,7 +198,10 @@ def test_the_whole_run_is_drawn_only_for_an_environment_whose_setups_train_in_ph
         return {line.get_label(): line.get_xdata()[-1] for line in named}
 
     column = {ax.get_title(): i for i, ax in enumerate(last)}
-    pendulum, cartpole = column["Pendulum-v1"], column["CartPole"]
+    pendulum, cartpole = column["Pendulum-v1: last phase"], column["CartPole: last phase"]
+    assert whole[pendulum].get_title() == "Pendulum-v1: whole run"
+    marks = [text.get_text() for text in whole[pendulum].texts]
+    assert marks == ["phase 1: tla-c"]  # one marker per phase start, naming the setups it is of
     assert ends(last[pendulum]) == {"tla-c (1 seed)": 5000, "td3 (1 seed)": 5000}
     assert ends(whole[pendulum]) == {"tla-c (1 seed)": 10000, "td3 (1 seed)": 5000}
     assert ends(last[cartpole]) == {"td3 (1 seed)": 5000}
@@ -472,11 +475,19 @@ def test_the_per_seed_table_shows_each_seed_and_its_earlier_phases(tmp_path):
     assert rows[4].startswith("Hopper-v5,hopper/tla-realtime,tla-realtime,1,1,fast,0.5,5000,")
 
 
-def test_step_axes_read_as_thousands_and_millions():
+@pytest.mark.parametrize(("end", "values", "ticks"), [
+    (800, (0, 200, 500, 800), ["0", "200", "500", "800"]),
+    (2000, (0, 200, 500, 2000), ["0", "0.2k", "0.5k", "2k"]),
+    (200_000, (0, 200, 125_000, 200_000), ["0", "0.2k", "125k", "200k"]),
+    (1_000_000, (0, 125_000, 500_000, 1_000_000), ["0", "0.125M", "0.5M", "1M"]),
+])
+def test_step_axes_read_every_tick_in_the_unit_of_the_axis_end(end, values, ticks):
+    """Ticks of one axis share a unit (0.5k ... 2k, not 500 ... 2k), that of the axis's end."""
     fig, ax = plt.subplots()
     _steps_axis(ax, "environment steps")
+    ax.set_xlim(0, end)
     fmt = ax.xaxis.get_major_formatter()
-    assert [fmt(v) for v in (0, 500, 125_000, 1_000_000)] == ["0", "500", "125k", "1M"]
+    assert [fmt(v) for v in values] == ticks
     assert ax.get_xlabel() == "environment steps"
     plt.close(fig)
 
