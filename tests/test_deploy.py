@@ -497,3 +497,12 @@ def test_a_setting_that_would_take_long_against_the_clock_says_so_before_it_star
     deploy(run, [Settings(speed=0.05, faults={"fast": Fault("die", 2)}, on_fault="stop")], episodes=2,
            out=tmp_path / "deploy", notify=lines.append)
     assert lines[0] == "0.05x: 2 episodes of up to 200 steps at 1 s a step take up to 6.7 minutes"
+
+
+def test_a_setting_is_named_in_the_figure_with_the_speed_it_reached_where_it_fell_short():
+    from layered.deploy_run import _reached
+
+    row = {"setting": "20x", "lockstep": False, "speed": 20.0, "real_time_factor": 13.26}
+    assert _reached(row) == "20x (13.3x reached)"
+    assert _reached({**row, "real_time_factor": 18.5}) == "20x"  # within a tenth of it
+    assert _reached({**row, "setting": "lockstep", "lockstep": True}) == "lockstep"
