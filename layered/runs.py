@@ -102,9 +102,11 @@ def warmup_warnings(recipe: Recipe, max_steps: int | None) -> list[str]:
         for name in phase.learn:
             warmup = recipe.warmup(name)
             if budget <= warmup * periods[name]:
+                own = recipe.layers[recipe.layer_names().index(name)].warmup is not None
+                key = f"layers.{name}.warmup" if own else "train.warmup"  # (a layer's own takes train.warmup's place)
                 out.append(f"phase {p} runs {budget} steps, but layer {name!r} acts at random for its first "
                            f"{warmup} decisions ({warmup * periods[name]} steps at period {periods[name]}): "
-                           "it will not learn (lower its warmup or raise the steps)")
+                           f"it will not learn (lower {key} or raise the steps)")
     return out
 
 

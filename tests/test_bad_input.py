@@ -139,7 +139,17 @@ def test_a_budget_below_a_layers_warm_up_is_named_before_training(tmp_path, caps
     err = capsys.readouterr().err
     assert code == 0
     warning = "layered: warning: phase 0 runs 300 steps, but layer 'slow' acts at random for its first 1000 decisions"
-    assert err.index(warning) < err.index("phase 0: slow")
+    assert err.index(warning) < err.index("phase 0: slow") and "(lower train.warmup or raise the steps)" in err
+
+
+def test_the_warm_up_warning_names_the_key_that_sets_the_layers_warm_up():
+    from layered.recipe import load_recipe
+    from layered.runs import warmup_warnings
+
+    own, shared = warmup_warnings(load_recipe(TLA_C, ["layers.slow.warmup=500"]), 300)
+    assert "'slow' acts at random for its first 500 decisions" in own
+    assert own.endswith("(lower layers.slow.warmup or raise the steps)")
+    assert "'fast'" in shared and shared.endswith("(lower train.warmup or raise the steps)")
 
 
 def test_a_single_run_given_settings_of_a_groups_environments_is_told_they_change_nothing():
