@@ -77,6 +77,13 @@ def test_threshold_per_dimension():
     assert np.array_equal(out, [0.7, 0.0])
 
 
+def test_a_thresholded_contribution_keeps_its_dtype():
+    """The action stays float32 through a threshold (the float64 threshold and zeros do not leak into it)."""
+    combiner = ResidualClip(threshold=np.array([0.6, 0.6]))
+    out = combiner.admit(np.zeros(2, np.float32), np.array([0.7, -0.1], np.float32), LOW, HIGH)
+    assert out.dtype == np.float32 and np.array_equal(out, np.array([0.7, -0.1], np.float32))
+
+
 def test_an_effect_exactly_at_the_threshold_is_kept():
     """The paper drops corrections *smaller* than the threshold: one of exactly the threshold stays."""
     combiner = ResidualClip(threshold=np.array([0.5, 0.5]))

@@ -11,8 +11,11 @@ from pettingzoo.test import api_test
 import layered.envs as envs
 from layered import make_aec_env
 
-ONE_PER_FAMILY = ["Pendulum-v1", "gym:InvertedPendulum-v5", "dmc:cartpole-swingup", "robotics:PointMaze_UMaze-v3",
-                  "robotics:AntMaze_UMaze-v5", "robotics:FetchReach-v4"]
+ONE_PER_FAMILY = list(dict.fromkeys([
+    "Pendulum-v1", "gym:InvertedPendulum-v5", "dmc:cartpole-swingup", "robotics:PointMaze_UMaze-v3",
+    "robotics:AntMaze_UMaze-v5", "robotics:FetchReach-v4",
+    *(envs.FAMILIES.get(family).example for family in envs.FAMILIES.names()),  # (every registered family's example)
+]))
 
 
 @pytest.mark.parametrize("env_id", ONE_PER_FAMILY)

@@ -166,6 +166,11 @@ def test_summarise_means_returns_and_pools_activity_over_steps():
     assert s.compute == pytest.approx((7 + 28) / 2) and s.jerk == 0.0
     assert s.decided == {"x": pytest.approx(5 / 6)} and s.acted == {"x": pytest.approx(2 / 6)}
     assert s.contribution == {"x": pytest.approx(2 * 0.5 / 6)}
+    assert (s.return_min, s.return_max) == (-2.0, 0.0)  # e1's return, e2's
+    # e1's repeat is held (x did not decide anew); e3 repeats its action as x decides it again: repeated, not held
+    e3 = measure_episode(steps([a(0.0)] * 2, [0.0] * 2, [("x",)] * 2, [("x",)] * 2), {"x": 7}, (a(-1.0), a(1.0)))
+    both = summarise([e1, e3])
+    assert (both.repetition, both.repetition_held) == (pytest.approx(0.5), pytest.approx(0.25))
 
 
 def test_distinct_states_spread_by_farthest_point_from_the_first():
@@ -324,3 +329,11 @@ def test_every_step_the_rules_held_repeats_its_action_exactly(periods, kinds, th
     repeated = np.all(actions[1:] == actions[:-1], axis=1)
     assert kept.sum() >= 20, "few held steps: the test shows little"
     assert np.all(repeated[kept]), f"held but changed at steps {np.flatnonzero(kept & ~repeated) + 1}"
+
+
+def test_a_layers_size_is_its_mean_absolute_part_over_the_action_dimensions():
+    record = StepRecord(np.array([0.4, 0.0], np.float32), 0.0, ("fast",),
+                        {"fast": np.array([0.5, -0.1], np.float32), "slow": np.zeros(2, np.float32)})
+    assert record.size("fast") == pytest.approx(0.3)  # (0.5 + 0.1) / 2, not the largest
+    assert record.size("slow") == 0.0 and record.size("mid") == 0.0  # no part, and not reached
+    assert record.acted == ("fast",)
