@@ -156,13 +156,16 @@ def test_rewards_action_penalty_is_mean_abs_action_over_the_layers_bound():
     assert rewards == pytest.approx({0: -3.0, 1: -3.0 - 1.0 / 4.0})  # |a| / (2 x max action 2)
 
 
-@pytest.mark.parametrize(("paid_from", "paid"), [("landing", [0.0, 0.5, 1.5]), ("decision", [0.5, 1.5, 1.0])])
-def test_a_delayed_action_penalty_is_paid_while_the_output_acts_or_from_its_decision(paid_from, paid):
-    """Fast outputs 0.5, 1.5, 1.0 at steps 0-2, each landing one step later: by default step t pays for the
-    output acting (none at step 0), with `action_penalty_from = "decision"` for the one chosen at t."""
+@pytest.mark.parametrize(("delay", "paid_from", "paid"), [
+    (1, "landing", [0.0, 0.5, 1.5]), (1, "decision", [0.5, 1.5, 1.0]),
+    (2, "landing", [0.0, 0.0, 0.5]), (2, "decision", [0.5, 1.5, 1.0]),  # (the newest in flight, not the oldest)
+])
+def test_a_delayed_action_penalty_is_paid_while_the_output_acts_or_from_its_decision(delay, paid_from, paid):
+    """Fast outputs 0.5, 1.5, 1.0 at steps 0-2, each landing `delay` steps later: by default step t pays for the
+    output acting (none before the first lands), with `action_penalty_from = "decision"` for the one chosen at t."""
     recipe = stack_recipe([2, 1])
     slow = recipe.layers[0].model_copy(update={"delay": 1})
-    fast = recipe.layers[1].model_copy(update={"delay": 1, "action_scale": 2.0, "action_penalty": 1.0,
+    fast = recipe.layers[1].model_copy(update={"delay": delay, "action_scale": 2.0, "action_penalty": 1.0,
                                                "action_penalty_from": paid_from})
     stack = Stack(recipe.model_copy(update={"layers": [slow, fast]}), OBS, ACT)
     shares = []
