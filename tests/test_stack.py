@@ -269,14 +269,30 @@ def test_joint_gate_shaping_defer_and_deviation_penalties():
     recipe = stack_recipe([4, 1], "gate")
     slow = recipe.layers[0].model_copy(update={"defer_reward_scale": (1.0, 1.0), "defer_penalty": 1.0,
                                                "deviation_penalty": 0.5})
-    fast = recipe.layers[1].model_copy(update={"deviation_penalty": 2.0})
+    fast = recipe.layers[1].model_copy(update={"deviation_penalty": 2.0, "action_scale": 0.5})  # its range: [-1, 1]
     stack = Stack(recipe.model_copy(update={"layers": [slow, fast]}), OBS, ACT)
     stack.hold(0, np.array([1.0, -1.0]))  # proposes 1.0 but defers
-    stack.hold(1, np.array([-1.0]))  # executed -1.0: deviation |(-1) - 1| / max action 2 = 1.0
+    stack.hold(1, np.array([-1.0]))  # executed -1.0: deviation |(-1) - 1| / the env's max action 2 = 1.0
     rewards = stack.layer_rewards(-3.0, stack.compose())
     assert rewards == pytest.approx({0: -3.0 - 1.0 - 0.5 * 1.0, 1: -3.0 - 2.0 * 1.0})
     stack.hold(0, np.array([1.0, 1.0]))  # commits: no penalties for anyone
     assert stack.layer_rewards(-3.0, stack.compose()) == pytest.approx({0: -3.0, 1: -3.0})
+
+
+def test_below_a_committed_gate_no_deviation_is_paid_though_a_gate_above_it_defers():
+    """Gate 8 defers (proposing 1.0), gate 4 below it commits to 0.0, which is executed: the slow gate pays its defer
+    penalty and its deviation 0.5 x |0 - 1| / 2; the fast layer, kept out by the committed gate, pays nothing."""
+    recipe = stack_recipe([8, 4, 1], ["gate", "gate", "residual-clip"])
+    slow = recipe.layers[0].model_copy(update={"defer_reward_scale": (1.0, 1.0), "defer_penalty": 1.0,
+                                               "deviation_penalty": 0.5})
+    fast = recipe.layers[2].model_copy(update={"deviation_penalty": 2.0})
+    stack = Stack(recipe.model_copy(update={"layers": [slow, recipe.layers[1], fast]}), OBS, ACT)
+    stack.hold(0, np.array([1.0, -1.0]))  # proposes 1.0, defers
+    stack.hold(1, np.array([0.0, 1.0]))  # commits to 0.0
+    stack.hold(2, np.array([-1.0]))  # not reached
+    composition = stack.compose()
+    assert composition.action == pytest.approx([0.0])
+    assert stack.layer_rewards(-3.0, composition) == pytest.approx({0: -3.0 - 1.0 - 0.25, 1: -3.0, 2: -3.0})
 
 
 def learning_from_commits(periods, kinds, **kw):
