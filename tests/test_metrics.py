@@ -130,6 +130,12 @@ def test_a_meter_of_several_rows_measures_each_rows_episode_as_its_own_trace_wou
     last = meter.finish(1)
     assert last.repetition_at_bounds == 0.5, "10 repeated, at the upper bound: one of two steps"
     assert last.repetition_held == 0.5, "no layer decided or had a part: the second step is held"
+    for action, fast in ((0.0, 0.0), (5.0, 0.25)):  # an episode without a repeat, the fast layer deciding its second
+        sized = np.array([[0.0, 0.0], [0.0, fast]])  # step's action anew: the last one's repeats are not carried
+        meter.record(np.array([False, True]), np.array([[0.0], [action]]), np.array([0.0, 1.0]), sized > 0, sized,
+                     sized > 0)
+    fresh = meter.finish(1)
+    assert (fresh.repetition, fresh.repetition_at_bounds, fresh.repetition_held) == (0.0, 0.0, 0.0)
 
 
 def test_a_meters_rows_measure_bit_for_bit_what_measure_episode_measures_of_their_traces():
