@@ -27,6 +27,18 @@ def test_pettingzoo_api_with_a_layer_that_learns_from_a_gates_commits():
     env.close()
 
 
+@pytest.mark.parametrize("settings", [
+    {"delay": 1}, {"delay": 2, "sees_in_flight": True}, {"delay": 1, "sees_executed": True}, {"max_repeat": 3},
+], ids=["delay", "delay-2-sees-in-flight", "delay-sees-executed", "repeats"])
+def test_pettingzoo_api_with_delays_and_repeats(settings):
+    """The observation and action spaces that delays and repeats extend (outputs in flight, a repeat count)."""
+    recipe = stack_recipe([4, 1], "residual-clip")
+    layers = [layer.model_copy(update=settings) for layer in recipe.layers]
+    env = make_aec_env(recipe.model_copy(update={"layers": layers}), seed=0)
+    api_test(env, num_cycles=300)
+    env.close()
+
+
 def test_pettingzoo_api_mixed_combiners_on_mujoco():
     env = make_aec_env(stack_recipe([4, 2, 1], ["gate", "residual-clip", "residual-clip"], env="InvertedPendulum-v5"))
     api_test(env, num_cycles=200)
