@@ -92,12 +92,18 @@ def test_an_effect_exactly_at_the_threshold_is_kept():
     assert np.array_equal(per_dimension.admit(np.array([0.0, 0.0]), np.array([0.5, 0.25]), LOW, HIGH), [0.5, 0.0])
 
 
-def test_a_combiner_without_threshold_round_trips_through_json():
-    from layered.combiners import Gate, combiner_from_json
+@pytest.mark.parametrize("name", COMBINERS.names())
+def test_a_combiner_without_threshold_round_trips_through_json(name):
+    from layered.combiners import combiner_from_json
 
-    for combiner in (ResidualClip(), Gate()):
-        data = combiner.to_json()
-        assert data["threshold"] is None
-        back = combiner_from_json(data)
-        assert type(back) is type(combiner) and back.threshold is None
+    combiner = COMBINERS.get(name)()
+    data = combiner.to_json()
+    assert data["threshold"] is None
+    back = combiner_from_json(data)
+    assert type(back) is type(combiner) and back.threshold is None
+
+
+def test_a_threshold_round_trips_through_json_as_float32():
+    from layered.combiners import combiner_from_json
+
     assert combiner_from_json(ResidualClip(np.array([0.5])).to_json()).threshold.dtype == np.float32
