@@ -299,8 +299,6 @@ def _report_parser(sub: Subcommands) -> None:
                      "those their environments step in (default: every core)")
 
 
-
-
 def _fail(message: str) -> int:
     print(f"layered: error: {message}", file=sys.stderr)
     return EXIT_BAD_INPUT
@@ -558,26 +556,18 @@ def _plot_last_episode(args: argparse.Namespace, run: Any, episodes: int, png: P
     try:
         measures = run_episode(env, run.learners, episode_seeds(run.seed, episodes)[-1])
         at = "the recipe's threshold" if args.threshold is None else f"threshold {args.threshold:g}"
-        plot_episode(env.trace, env.possible_agents, png, f"{_run_title(run)}: episode {episodes - 1} (the last of "
+        plot_episode(env.trace, env.possible_agents, png, f"{run.title}: episode {episodes - 1} (the last of "
                      f"{episodes}), return {measures.ret:.1f}, {at}", (env.stack.low, env.stack.high))
     finally:
         env.close()
 
 
-def _run_title(run: Any) -> str:
-    """What a run's figures name it by: its environment, label and seed."""
-    from layered.rundir import read_run_info
-
-    return f"{run.recipe.env.id}, {read_run_info(run.path).label} seed {run.recipe.train.seed}"
-
-
 def _print_sweep(rows: list[dict[str, Any]], written: Path, run: Any) -> None:
     from layered.report import plot_threshold_sweep
-
     from layered.stack import has_threshold
 
     none = "" if has_threshold(run.recipe, run.active) else "; no threshold applies to this stack: the lines are flat"
-    plot_threshold_sweep(rows, written.with_suffix(".png"), f"{_run_title(run)}: threshold sweep "
+    plot_threshold_sweep(rows, written.with_suffix(".png"), f"{run.title}: threshold sweep "
                          f"({count(rows[0]['episodes'], 'episode')} at each threshold{none})")
     print("| threshold | return | action repetition | decisions |\n|---|---|---|---|")
     for r in rows:

@@ -124,10 +124,9 @@ def _deploy(run: TrainedRun, settings: Sequence[Settings], episodes: int, out: P
             notify(f"{setting.label}: return {row['return_mean']:.1f} (eval {row['eval_return_mean']:.1f}) over "
                    f"{row['episodes']} episodes, {row['steps_per_s']:.0f} steps/s; written to "
                    f"{out / (setting.label + '.json')}" if played else f"{setting.label}: no episode completed")
-            if stopped and k < len(settings) - 1:
-                notify(f"the deployment ends (--on-fault stop): {', '.join(s.label for s in settings[k + 1:])} not "
-                       "played")
             if stopped:
+                if rest := settings[k + 1:]:
+                    notify(f"the deployment ends (--on-fault stop): {', '.join(s.label for s in rest)} not played")
                 break
     finally:
         env.close()

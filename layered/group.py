@@ -535,8 +535,7 @@ class Group:
         if not rows.any():
             return None
         return (mine.seen.copy(), mine.output.copy(), mine.reward.copy(), next_seen, terminated,
-                stack.layers[i].discounts(mine.elapsed), rows,
-                list(mine.path))
+                stack.layers[i].discounts(mine.elapsed), rows, list(mine.path))
 
     def _evaluate(self, phase: Phase, evaluator: Stacks, losses: dict[str, PendingLosses],
                   step: int, bar: Progress) -> None:

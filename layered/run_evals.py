@@ -21,12 +21,13 @@ from layered.stack import has_threshold
 from layered.standing import Standing, standing
 
 
-def sweep_file(thresholds: list[float], episodes: int | None = None) -> str:
-    """Where a threshold sweep is kept in a run's eval/ folder: `SWEEP_FILE` for the default grid on the run's own
-    number of evaluation episodes (`episodes` None), and a name of its own for any other (`threshold-sweep-0-0.3.csv`,
-    `threshold-sweep-episodes-1.csv`), so that no other sweep stands in for the one Fig. 2 is drawn from."""
+def sweep_file(thresholds: list[float], episodes: int | None, own: int) -> str:
+    """Where a threshold sweep on `episodes` episodes is kept in a run's eval/ folder: `SWEEP_FILE` for the default
+    grid on the run's `own` number of evaluation episodes (or an unknown number, None), and a name of its own for
+    any other (`threshold-sweep-0-0.3.csv`, `threshold-sweep-episodes-1.csv`), so that no other sweep stands in for
+    the one Fig. 2 is drawn from."""
     parts = ([] if thresholds == DEFAULT_SWEEP else [f"{t:g}" for t in thresholds]) + \
-        ([] if episodes is None else [f"episodes-{episodes}"])
+        ([] if episodes in (None, own) else [f"episodes-{episodes}"])
     return "-".join(["threshold-sweep", *parts]) + ".csv"
 
 
@@ -54,6 +55,13 @@ class TrainedRun:
         """How many episodes an evaluation plays unless asked otherwise: the recipe's `eval.episodes`, or with `fresh`
         its `eval.fresh_episodes`."""
         return self.recipe.eval.fresh_episodes if self.fresh else self.recipe.eval.episodes
+
+    @property
+    def title(self) -> str:
+        """What the run's figures name it by: its environment, label and seed."""
+        from layered.rundir import read_run_info
+
+        return f"{self.recipe.env.id}, {read_run_info(self.path).label} seed {self.recipe.train.seed}"
 
     @property
     def eval_dir(self) -> Path:
@@ -219,7 +227,7 @@ def threshold_sweep(run: TrainedRun, thresholds: list[float], episodes: int | No
                          **evaluate_run(at, run.learners, episodes, run.seed).row()})
     finally:
         envs.close()
-    path = run.eval_dir / sweep_file(thresholds, None if episodes == run.recipe.eval.episodes else episodes)
+    path = run.eval_dir / sweep_file(thresholds, episodes, run.recipe.eval.episodes)
     with path.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -234,14 +242,12 @@ def gallery(run: TrainedRun, layer: str, episodes: int | None = None, threshold:
     states shown."""
     from layered.evaluate import states_where_layer_acts
     from layered.report import save_gallery
-    from layered.rundir import read_run_info
 
     acted, steps, shots = states_where_layer_acts(run.recipe, run.learners, run.active, layer, run.seed,
                                                   episodes or run.episodes, threshold)
     png = run.eval_dir / f"gallery-{layer}.png"
-    label = read_run_info(run.path).label
-    save_gallery(shots, layer, png, f"{run.recipe.env.id}, {label} seed {run.recipe.train.seed}: {len(shots)} of the "
-                 f"{acted} steps (of {steps}) where layer {layer!r} changed the action, the most different")
+    save_gallery(shots, layer, png, f"{run.title}: {len(shots)} of the {acted} steps (of {steps}) where layer "
+                 f"{layer!r} changed the action, the most different")
     return png, acted, steps, len(shots)
 
 
@@ -267,9 +273,8 @@ def run_figure_evals(run_dir: Path, missing: list[str]) -> None:
     if "threshold sweep" in missing:
         kept = run.eval_dir / SWEEP_FILE
         if kept.exists():  # another sweep, kept there before it had a name of its own: moved to it (one of unknown
-            episodes = kept_episodes(kept)  # episodes over the default grid is evaluated again in its place)
-            episodes = None if episodes == run.recipe.eval.episodes else episodes
-            renamed = run.eval_dir / sweep_file(kept_thresholds(kept), episodes)
+            # episodes over the default grid is evaluated again in its place)
+            renamed = run.eval_dir / sweep_file(kept_thresholds(kept), kept_episodes(kept), run.recipe.eval.episodes)
             if renamed != kept:
                 kept.rename(renamed)
                 if kept.with_suffix(".png").exists():

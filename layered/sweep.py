@@ -147,8 +147,6 @@ def _stopped() -> bool:
 def _finished(job: Job, grouped: bool) -> Outcome:
     """A job whose run is finished: skipped, saying so where it was trained otherwise than this sweep trains it
     (a seed of a group where the sweep trains single runs, or the other way round)."""
-    from layered.rundir import read_run_info
-
     other = bool(read_run_info(job.out).group) != grouped
     how = f"; trained as {'a single run' if grouped else 'a seed of a group'}" if other else ""
     return Outcome(job, "skipped", f"already finished{how}")

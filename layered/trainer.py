@@ -21,7 +21,7 @@ from layered.evaluate import evaluation_seed
 from layered.group_eval import Stacks, close_evaluator, evaluate_run, open_run_evaluator
 from layered.interrupt import StopRequest, Stopped
 from layered.learners import Learner
-from layered.learners.base import checked_losses
+from layered.learners.base import checked_losses, is_plugin
 from layered.errors import Diverged
 from layered.metrics import Evaluation, normalised_auc
 from layered.orders import Phase, phases_of
@@ -163,6 +163,7 @@ def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, e
     layer, store its completed transition, act, step the env, update, log."""
     learners, recipe = run.learners, run.recipe
     warmups = {name: recipe.warmup(name) for name in phase.learn}
+    checked = {name: is_plugin(learners[name]) for name in phase.learn}  # (a plugin's losses: the shipped are tested)
     updates = {layer.name: layer.updates for layer in recipe.layers}
     for name in env.agent_iter():
         obs, _, terminated, truncated, info = env.last()
@@ -191,7 +192,7 @@ def _train_episode(run: Training, state: LoopState, phase: Phase, budget: int, e
             if state.decisions[name] > warmups[name]:
                 for _ in range(updates[name]):
                     if (losses := learner.update()) is not None:
-                        state.pending[name].add(checked_losses(learner, name, losses))
+                        state.pending[name].add(checked_losses(learner, name, losses) if checked[name] else losses)
         if state.step >= state.next_eval:  # log
             _evaluate(run, state, phase, evaluator, bar)
             state.next_eval += recipe.eval.every

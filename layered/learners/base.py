@@ -143,6 +143,12 @@ CHECKPOINTED = (torch.Tensor, bool, int, float, complex, str, bytes, type(None),
 """What a checkpoint holds besides containers (dicts, lists, tuples, sets): what torch reads back weights-only."""
 
 
+def is_plugin(learner: Learner) -> bool:
+    """Whether the learner's class comes from outside the library: the checks below are for those (the test suite
+    checks the shipped ones)."""
+    return not type(learner).__module__.startswith("layered.")
+
+
 def check_plugin_learner(learner: Learner, layer: str) -> None:
     """Refuse, in one line and before a run starts, a plugin learner whose `state_dict` or `resume_state` holds what a
     checkpoint cannot read back (a numpy array), or whose `load_state_dict` or `load_resume_state` cannot take what
